@@ -1,0 +1,41 @@
+# crosspath: every target sets itself up on a fresh clone.
+VENV    ?= .venv
+PYTHON  ?= python3
+BIN      = $(VENV)/bin
+STAMP    = $(VENV)/.installed-stamp
+OUT     ?= results
+
+.PHONY: install sysdeps lint test test-fast bench demo clean
+
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/pip install -q --upgrade pip
+	$(BIN)/pip install -q -e '.[dev]'
+	touch $(STAMP)
+
+install: $(STAMP)
+
+# Debian packages the network lab needs (root only; no-op when present).
+sysdeps:
+	@bash deploy/lab/install-sysdeps.sh
+
+lint: install
+	$(BIN)/ruff check .
+	$(BIN)/mypy
+
+test: install sysdeps lint
+	$(BIN)/pytest -q
+
+test-fast: install
+	$(BIN)/pytest -q -m "not daemons and not lab"
+
+bench: install
+	@mkdir -p $(OUT)/bench
+	$(BIN)/crosspath bench codec --json $(OUT)/bench/codec.json
+	$(BIN)/crosspath bench rsu --json $(OUT)/bench/rsu.json
+
+demo: install
+	$(BIN)/crosspath demo
+
+clean:
+	rm -rf $(VENV) .mypy_cache .ruff_cache .pytest_cache .hypothesis build *.egg-info

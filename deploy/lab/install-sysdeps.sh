@@ -1,0 +1,17 @@
+#!/usr/bin/env bash
+# Installs the Debian packages the network lab needs (nftables, iproute2) when missing.
+# Needs root; outside CI a non-root user is told what to install and nothing fails here.
+set -euo pipefail
+need=()
+command -v nft >/dev/null 2>&1 || need+=(nftables)
+command -v ip  >/dev/null 2>&1 || need+=(iproute2)
+command -v tc  >/dev/null 2>&1 || need+=(iproute2)
+[ ${#need[@]} -eq 0 ] && exit 0
+if [ "$(id -u)" -ne 0 ]; then
+  echo "crosspath lab needs: ${need[*]} (run as root, or install them yourself)" >&2
+  if [ -n "${CI:-}" ]; then exit 1; fi
+  exit 0
+fi
+export DEBIAN_FRONTEND=noninteractive
+apt-get update -qq
+apt-get install -y -qq --no-install-recommends "${need[@]}" >/dev/null

@@ -1,0 +1,567 @@
+"""Binary codec of crosspath's V2X messages (layout in ``protocol/SPEC.md``).
+
+Plain ``struct`` fields, little-endian, at fixed offsets after each id; path
+points are fixed-point (1 cm, 1 ms) and delta coded in columns whose width (0,
+1 or 2 bytes) the encoder picks per message, packed and unpacked with numpy in
+one go (no per-point Python loop). No msgpack: every field has a known type, so
+tags and map keys would only add bytes and time.
+
+``decode`` is the trust boundary: whatever a peer sends, it returns a valid
+message or raises ``DecodeError`` (a ``ValueError``), never anything else, and
+it never allocates more than a few kilobytes (a datagram holds at most
+``max_points`` points). Everything ``decode`` accepts, ``encode`` accepts too.
+"""
+
+from __future__ import annotations
+
+import math
+import operator
+import re
+import struct
+from collections.abc import Callable
+from typing import Any, Final
+
+import numpy as np
+
+from protocol.keys import ID_CHARS, MAX_ID_LEN, is_valid_id
+from protocol.messages import (
+    FORMAT_VERSION,
+    MAX_DATAGRAM,
+    AutonomousPath,
+    Command,
+    CoordinatedPath,
+    Flags,
+    FloatArray,
+    FuturePath,
+    Header,
+    Kind,
+    Message,
+    Mode,
+    ModeCommand,
+    RsuBeacon,
+    VehiclePath,
+)
+
+MAGIC: Final = 0xCB
+"""First byte of every crosspath datagram."""
+
+MAX_SPEED_MPS: Final = 100.0
+"""Largest speed accepted anywhere [m/s]; more is absurd for a road vehicle."""
+
+MAX_COORD_M: Final = 10_000_000.0
+"""Largest |x| or |y| accepted [m] (10,000 km: any local metric frame)."""
+
+MAX_TIME_US: Final = 2**53
+"""Largest |generation time| accepted [µs] (285 years; exact as a float)."""
+
+MAX_LENGTH_M: Final = 50.0
+"""Longest vehicle accepted [m]."""
+
+MAX_WIDTH_M: Final = 10.0
+"""Widest vehicle accepted [m]."""
+
+MAX_RADIUS_M: Final = 10_000.0
+"""Largest RSU coverage radius accepted [m]."""
+
+MAX_AUTH_LEN: Final = 256
+"""Longest ``Header.auth`` (scheme byte + up to 255 bytes of data)."""
+
+_KNOWN_FLAGS: Final = int(Flags.AUTH)
+_I32_MIN: Final = -(2**31)
+_I32_MAX: Final = 2**31 - 1
+_MAX_COORD_CM: Final = round(MAX_COORD_M * 100)
+_MAX_SPEED_CM_S: Final = round(MAX_SPEED_MPS * 100)
+_MAX_HEADING: Final = 31416  # 1e-4 rad, ceil(pi * 1e4)
+
+# header: magic, version, kind, flags, seq, time_us, sender length (then the sender id)
+_HEAD: Final = struct.Struct("<BBBBIqB")
+# future/autonomous path state: x, y, speed, heading, length, width, mode, n, widths
+_STATE: Final = struct.Struct("<iiHhHHBHB")
+# coordinated path after its vehicle id: mode, n, widths
+_CP_STATE: Final = struct.Struct("<BHB")
+_FIRST3: Final = struct.Struct("<iii")  # first point: x [cm], y [cm], t [ms after header time]
+_FIRST4: Final = struct.Struct("<iiiH")  # ... and speed [cm/s]
+_COMMAND: Final = struct.Struct("<BB")  # command, mode
+_BEACON: Final = struct.Struct("<iiI")  # x [cm], y [cm], radius [cm]
+_U8: Final = struct.Struct("<B")
+_TRAILER: Final = struct.Struct("<BB")  # scheme, length
+
+_ID_BYTES_RE: Final = re.compile(rf"[{ID_CHARS}]{{1,{MAX_ID_LEN}}}".encode("ascii"))
+
+# delta columns: x, y, t, speed. Width code c in 0..2 means c bytes per delta.
+_T_COLUMN: Final = 2
+_DTYPES_SIGNED: Final = (None, np.dtype("<i1"), np.dtype("<i2"))
+_DTYPES_UNSIGNED: Final = (None, np.dtype("<u1"), np.dtype("<u2"))
+_SCALE3: Final = np.array([[100.0], [100.0], [1000.0]])  # m, m, s -> cm, cm, ms
+_DIVISORS: Final = np.array([[100.0], [100.0], [1e6]])  # cm, cm, µs -> m, m, s
+_COLUMN_NAMES: Final = ("x", "y", "t", "speed")
+# bounds in wire units (cm, ms after header time, cm/s) of the first point (all speeds)
+_COL_LO: Final = (-_MAX_COORD_CM, -_MAX_COORD_CM, _I32_MIN, 0)
+_COL_HI: Final = (_MAX_COORD_CM, _MAX_COORD_CM, _I32_MAX, _MAX_SPEED_CM_S)
+
+_HEADER_MAX: Final = _HEAD.size + MAX_ID_LEN
+_VP_FIXED: Final = _STATE.size + _FIRST3.size
+_CP_FIXED: Final = 1 + MAX_ID_LEN + _CP_STATE.size + _FIRST4.size
+
+
+class EncodeError(ValueError):
+    """A message that cannot go on the wire (bad id, NaN, out of range, too big)."""
+
+
+class DecodeError(ValueError):
+    """A datagram that is not a valid crosspath message; the only error ``decode`` raises."""
+
+
+def _fit(fixed: int, row: int) -> int:
+    return (MAX_DATAGRAM - _HEADER_MAX - fixed) // row + 1
+
+
+_MAX_POINTS: Final[dict[Kind, int]] = {
+    Kind.FUTURE_PATH: _fit(_VP_FIXED, 6),
+    Kind.AUTONOMOUS_PATH: _fit(_VP_FIXED, 6),
+    Kind.COORDINATED_PATH: _fit(_CP_FIXED, 8),
+    Kind.MODE_COMMAND: 0,
+    Kind.RSU_BEACON: 0,
+}
+
+
+def max_points(kind: Kind | int) -> int:
+    """Most path points a message of ``kind`` may carry (0 for kinds without points).
+
+    Every message with at most this many points fits one ``MAX_DATAGRAM``
+    datagram whatever its values, assuming the longest ids (32 bytes) and no
+    authentication trailer: the count assumes 2-byte deltas in every column.
+    Messages with more points are refused by both ``encode`` and ``decode``;
+    a trailer can still push a full message over the limit (``EncodeError``).
+    """
+    try:
+        return _MAX_POINTS[Kind(kind)]
+    except ValueError:
+        raise ValueError(f"unknown message kind {kind!r}") from None
+
+
+# ---------------------------------------------------------------- encoding
+
+
+def _id_bytes(value: str, what: str) -> bytes:
+    if not is_valid_id(value):
+        raise EncodeError(
+            f"invalid {what} {value!r}: need 1..{MAX_ID_LEN} characters from [{ID_CHARS}]"
+        )
+    return value.encode("ascii")
+
+
+def _fixed(value: float, scale: float, lo: int, hi: int, what: str, unit: str) -> int:
+    """``value`` in wire units (``value * scale`` rounded half to even), range checked."""
+    v = float(value)
+    if not math.isfinite(v):
+        raise EncodeError(f"{what} is {v}: NaN and infinities cannot be encoded")
+    q = round(v * scale)
+    if not lo <= q <= hi:
+        raise EncodeError(f"{what} {v} {unit} is outside [{lo / scale}, {hi / scale}] {unit}")
+    return q
+
+
+def _header(kind: Kind, header: Header) -> tuple[bytes, bytes]:
+    """The header bytes and the trailer bytes (empty without ``Flags.AUTH``)."""
+    sender = _id_bytes(header.sender, "sender id")
+    seq = operator.index(header.seq)
+    if not 0 <= seq <= 0xFFFF_FFFF:
+        raise EncodeError(f"sequence number {seq} does not fit 32 bits unsigned")
+    time_us = operator.index(header.time_us)
+    if not -MAX_TIME_US <= time_us <= MAX_TIME_US:
+        raise EncodeError(f"generation time {time_us} µs is beyond ±2**53 µs")
+    flags = operator.index(header.flags)
+    if flags & ~_KNOWN_FLAGS or flags < 0:
+        raise EncodeError(f"unknown header flag bits {flags:#x}")
+    auth = bytes(header.auth)
+    if bool(flags & Flags.AUTH) != bool(auth):
+        raise EncodeError("header.auth must be non-empty exactly when flags has Flags.AUTH")
+    trailer = b""
+    if auth:
+        if len(auth) > MAX_AUTH_LEN:
+            raise EncodeError(f"auth trailer of {len(auth)} bytes; at most {MAX_AUTH_LEN}")
+        trailer = _TRAILER.pack(auth[0], len(auth) - 1) + auth[1:]
+    head = _HEAD.pack(MAGIC, FORMAT_VERSION, kind, flags, seq, time_us, len(sender))
+    return head + sender, trailer
+
+
+def _points(
+    kind: Kind, points: FloatArray, speeds: FloatArray | None, time_us: int
+) -> tuple[int, int, bytes]:
+    """Point count, widths byte and the packed points (first row + delta columns)."""
+    n = int(points.shape[0])
+    cap = _MAX_POINTS[kind]
+    if n > cap:
+        raise EncodeError(
+            f"{n} points: a {kind.name.lower()} carries at most {cap} (one datagram)"
+        )
+    if n == 0:
+        return 0, 0, b""
+    if points.shape != (n, 3):
+        raise EncodeError(f"points must have shape (N, 3), not {points.shape}")
+    ncols = 3 if speeds is None else 4
+    # column-major wire units: x [cm], y [cm], t [ms after the header time], speed [cm/s]
+    cols = np.empty((ncols, n))
+    np.multiply(points.T, _SCALE3, out=cols[:3])
+    cols[_T_COLUMN] -= time_us / 1000.0
+    if speeds is not None:
+        np.multiply(speeds, 100.0, out=cols[3])
+    np.rint(cols, out=cols)
+    first: list[float] = cols[:, 0].tolist()
+    for c in range(ncols):
+        # NaN fails both comparisons, infinities one
+        if not _COL_LO[c] <= first[c] <= _COL_HI[c]:
+            _raise_bad_column(points, speeds, c)
+    if speeds is not None:
+        lo, hi = float(np.minimum.reduce(cols[3])), float(np.maximum.reduce(cols[3]))
+        if not (lo >= 0 and hi <= _MAX_SPEED_CM_S):
+            _raise_bad_column(points, speeds, 3)
+    parts = [(_FIRST3 if ncols == 3 else _FIRST4).pack(*map(int, first))]
+    widths = 0
+    if n > 1:
+        deltas = np.subtract(cols[:, 1:], cols[:, :-1])  # exact: integers far below 2**53
+        dlo: list[float] = np.minimum.reduce(deltas, axis=1).tolist()
+        dhi: list[float] = np.maximum.reduce(deltas, axis=1).tolist()
+        for c in range(ncols):
+            code = _width_code(points, speeds, c, dlo[c], dhi[c])
+            if code:
+                dtypes = _DTYPES_UNSIGNED if c == _T_COLUMN else _DTYPES_SIGNED
+                parts.append(deltas[c].astype(dtypes[code]).tobytes())
+                widths |= code << (2 * c)
+    return n, widths, b"".join(parts)
+
+
+def _width_code(
+    points: FloatArray, speeds: FloatArray | None, column: int, lo: float, hi: float
+) -> int:
+    """The narrowest width code for deltas in [lo, hi] of ``column``."""
+    if lo == 0 and hi == 0:
+        return 0
+    if not (math.isfinite(lo) and math.isfinite(hi)):
+        _raise_bad_column(points, speeds, column)
+    if column == _T_COLUMN:
+        if lo < 0:
+            raise EncodeError("point times go backwards: times must be non-decreasing")
+        if hi <= 0xFF:
+            return 1
+        if hi <= 0xFFFF:
+            return 2
+        raise EncodeError(
+            f"{hi / 1000:.3f} s between consecutive points: at most 65.535 s (uint16 ms)"
+        )
+    if lo >= -128 and hi <= 127:
+        return 1
+    if lo >= -32768 and hi <= 32767:
+        return 2
+    unit = "m/s" if column == 3 else "m"
+    raise EncodeError(
+        f"{_COLUMN_NAMES[column]} changes by {max(-lo, hi) / 100:.2f} {unit} between "
+        f"consecutive points: at most 327.67 {unit} (int16 centi-units)"
+    )
+
+
+def _raise_bad_column(points: FloatArray, speeds: FloatArray | None, column: int) -> None:
+    values = points[:, column] if column < 3 else speeds
+    if values is not None and not np.isfinite(values).all():
+        raise EncodeError(f"path {_COLUMN_NAMES[column]} contains NaN or infinity")
+    if column == _T_COLUMN:
+        raise EncodeError("the first point's time is more than 2**31 ms away from the header time")
+    if column == 3:
+        raise EncodeError(f"path speeds must lie in [0, {MAX_SPEED_MPS}] m/s")
+    raise EncodeError(f"the first point's {_COLUMN_NAMES[column]} is beyond ±{MAX_COORD_M} m")
+
+
+def _encode_vehicle_path(kind: Kind, m: VehiclePath) -> list[bytes]:
+    head, trailer = _header(kind, m.header)
+    n, widths, packed = _points(kind, m.points, None, m.header.time_us)
+    mode = Mode(m.mode)
+    heading = float(m.heading)
+    if math.isfinite(heading) and abs(heading) > _MAX_HEADING / 1e4:
+        heading = math.remainder(heading, math.tau)  # into [-pi, pi]
+    state = _STATE.pack(
+        _fixed(m.x, 100.0, -_MAX_COORD_CM, _MAX_COORD_CM, "x", "m"),
+        _fixed(m.y, 100.0, -_MAX_COORD_CM, _MAX_COORD_CM, "y", "m"),
+        _fixed(m.speed, 100.0, 0, _MAX_SPEED_CM_S, "speed", "m/s"),
+        _fixed(heading, 1e4, -_MAX_HEADING, _MAX_HEADING, "heading", "rad"),
+        _fixed(m.length, 100.0, 1, round(MAX_LENGTH_M * 100), "length", "m"),
+        _fixed(m.width, 100.0, 1, round(MAX_WIDTH_M * 100), "width", "m"),
+        mode,
+        n,
+        widths,
+    )
+    return [head, state, packed, trailer]
+
+
+def _encode_future_path(m: Any) -> list[bytes]:
+    return _encode_vehicle_path(Kind.FUTURE_PATH, m)
+
+
+def _encode_autonomous_path(m: Any) -> list[bytes]:
+    return _encode_vehicle_path(Kind.AUTONOMOUS_PATH, m)
+
+
+def _encode_coordinated_path(m: CoordinatedPath) -> list[bytes]:
+    head, trailer = _header(Kind.COORDINATED_PATH, m.header)
+    vehicle = _id_bytes(m.vehicle, "vehicle id")
+    mode = Mode(m.mode)
+    if mode is Mode.AUTO:
+        raise EncodeError("a coordinated path has mode C_SLOW or C_FAST, not AUTO")
+    if m.speeds.shape != (m.points.shape[0],):
+        raise EncodeError("a coordinated path needs one speed per point")
+    n, widths, packed = _points(Kind.COORDINATED_PATH, m.points, m.speeds, m.header.time_us)
+    state = _U8.pack(len(vehicle)) + vehicle + _CP_STATE.pack(mode, n, widths)
+    return [head, state, packed, trailer]
+
+
+def _encode_mode_command(m: ModeCommand) -> list[bytes]:
+    head, trailer = _header(Kind.MODE_COMMAND, m.header)
+    vehicle = _id_bytes(m.vehicle, "vehicle id")
+    command = Command(m.command)
+    mode = Mode(m.mode)
+    _check_command(command, mode, EncodeError)
+    body = _U8.pack(len(vehicle)) + vehicle + _COMMAND.pack(command, mode)
+    return [head, body, trailer]
+
+
+def _encode_rsu_beacon(m: RsuBeacon) -> list[bytes]:
+    head, trailer = _header(Kind.RSU_BEACON, m.header)
+    intersection = _id_bytes(m.intersection, "intersection id")
+    body = _BEACON.pack(
+        _fixed(m.x, 100.0, -_MAX_COORD_CM, _MAX_COORD_CM, "x", "m"),
+        _fixed(m.y, 100.0, -_MAX_COORD_CM, _MAX_COORD_CM, "y", "m"),
+        _fixed(m.radius, 100.0, 1, round(MAX_RADIUS_M * 100), "radius", "m"),
+    )
+    return [head, _U8.pack(len(intersection)) + intersection + body, trailer]
+
+
+def _check_command(command: Command, mode: Mode, error: type[ValueError]) -> None:
+    if command is Command.INITIATE and mode is Mode.AUTO:
+        raise error("an INITIATE command targets C_SLOW or C_FAST, not AUTO")
+    if command is Command.TERMINATE and mode is not Mode.AUTO:
+        raise error(f"a TERMINATE command returns to AUTO, not {mode.name}")
+
+
+_ENCODERS: Final[dict[type, Callable[[Any], list[bytes]]]] = {
+    FuturePath: _encode_future_path,
+    AutonomousPath: _encode_autonomous_path,
+    CoordinatedPath: _encode_coordinated_path,
+    ModeCommand: _encode_mode_command,
+    RsuBeacon: _encode_rsu_beacon,
+}
+
+
+def encode(message: Message) -> bytes:
+    """The datagram of ``message``; ``EncodeError`` if it is invalid or exceeds ``MAX_DATAGRAM``."""
+    encoder = _ENCODERS.get(type(message))
+    if encoder is None:
+        for cls, candidate in _ENCODERS.items():
+            if isinstance(message, cls):
+                encoder = candidate
+                break
+        else:
+            raise EncodeError(f"not a crosspath message: {type(message).__name__}")
+    try:
+        data = b"".join(encoder(message))
+    except EncodeError:
+        raise
+    except (TypeError, ValueError, AttributeError, OverflowError, struct.error) as exc:
+        raise EncodeError(f"cannot encode {type(message).__name__}: {exc}") from exc
+    if len(data) > MAX_DATAGRAM:
+        raise EncodeError(
+            f"{type(message).__name__} from {message.header.sender!r} needs {len(data)} bytes, "
+            f"more than one {MAX_DATAGRAM}-byte datagram"
+        )
+    return data
+
+
+# ---------------------------------------------------------------- decoding
+
+_KINDS: Final = {int(k): k for k in Kind}
+_MODES: Final = {int(m): m for m in Mode}
+_COMMANDS: Final = {int(c): c for c in Command}
+
+
+def _read_id(buf: bytes, off: int, length: int, what: str) -> str:
+    end = off + length
+    if not 1 <= length <= MAX_ID_LEN or end > len(buf):
+        raise DecodeError(f"{what}: bad length {length} at offset {off}")
+    if _ID_BYTES_RE.fullmatch(buf, off, end) is None:
+        raise DecodeError(f"{what}: bytes outside [{ID_CHARS}]")
+    return buf[off:end].decode("ascii")
+
+
+def _read_points(
+    buf: bytes, off: int, kind: Kind, n: int, widths: int, ncols: int, time_us: int
+) -> tuple[FloatArray, FloatArray | None, int]:
+    """Points (N, 3) in metres and seconds, speeds [m/s] if ``ncols`` is 4, next offset."""
+    if n > _MAX_POINTS[kind]:
+        raise DecodeError(f"{n} points: more than the {_MAX_POINTS[kind]} that fit a datagram")
+    if widths >> (2 * ncols):
+        raise DecodeError(f"widths byte {widths:#04x} has bits set beyond the columns")
+    if n <= 1 and widths:
+        raise DecodeError("widths byte must be 0 for paths of fewer than 2 points")
+    if n == 0:
+        return np.empty((0, 3)), (None if ncols == 3 else np.empty(0)), off
+    first_struct = _FIRST3 if ncols == 3 else _FIRST4
+    first = first_struct.unpack_from(buf, off)
+    off += first_struct.size
+    for c in range(ncols):
+        if not _COL_LO[c] <= first[c] <= _COL_HI[c]:
+            raise DecodeError(f"first point: {_COLUMN_NAMES[c]} out of range")
+    # column-major, int64: x [cm], y [cm], t [µs on the run's time base], speed [cm/s]
+    cols = np.empty((ncols, n), dtype=np.int64)
+    cols[:, 0] = first
+    cols[_T_COLUMN, 0] = first[_T_COLUMN] * 1000 + time_us
+    count = n - 1
+    for c in range(ncols):
+        code = (widths >> (2 * c)) & 3
+        if code == 0:
+            cols[c, 1:] = 0
+            continue
+        if code == 3:
+            raise DecodeError(f"reserved width code 3 for column {_COLUMN_NAMES[c]}")
+        end = off + count * code
+        if end > len(buf):
+            raise DecodeError(f"truncated: column {_COLUMN_NAMES[c]} needs {end} bytes")
+        dtypes = _DTYPES_UNSIGNED if c == _T_COLUMN else _DTYPES_SIGNED
+        cols[c, 1:] = np.frombuffer(buf, dtype=dtypes[code], count=count, offset=off)
+        if c == _T_COLUMN:
+            cols[c, 1:] *= 1000
+        off = end
+    np.add.accumulate(cols, axis=1, out=cols)
+    speeds = None
+    if ncols == 4:
+        if np.minimum.reduce(cols[3]) < 0 or np.maximum.reduce(cols[3]) > _MAX_SPEED_CM_S:
+            raise DecodeError("path speeds out of range")
+        speeds = cols[3] / 100.0
+    points = np.empty((n, 3))
+    np.divide(cols[:3], _DIVISORS, out=points.T)
+    return points, speeds, off
+
+
+def _enum(table: dict[int, Any], value: int, what: str) -> Any:
+    member = table.get(value)
+    if member is None:
+        raise DecodeError(f"invalid {what} {value}")
+    return member
+
+
+def _read_trailer(buf: bytes, off: int, flags: int) -> bytes:
+    size = len(buf)
+    if not flags & Flags.AUTH:
+        if off != size:
+            raise DecodeError(f"{size - off} trailing bytes after the body")
+        return b""
+    if off + _TRAILER.size > size:
+        raise DecodeError("truncated authentication trailer")
+    scheme, length = _TRAILER.unpack_from(buf, off)
+    start = off + _TRAILER.size
+    if start + length != size:
+        raise DecodeError(
+            f"authentication trailer says {length} bytes, datagram has {size - start}"
+        )
+    return bytes((scheme,)) + buf[start:]
+
+
+def _decode(data: bytes | bytearray | memoryview) -> Message:
+    if isinstance(data, bytes):
+        buf = data
+    elif isinstance(data, bytearray | memoryview):
+        buf = bytes(data)
+    else:
+        raise DecodeError(f"expected bytes, not {type(data).__name__}")
+    size = len(buf)
+    if size > MAX_DATAGRAM:
+        raise DecodeError(f"{size} bytes: longer than one {MAX_DATAGRAM}-byte datagram")
+    if size < _HEAD.size:
+        raise DecodeError(f"truncated: {size} bytes, a header alone needs {_HEAD.size}+")
+    magic, version, kind_value, flags, seq, time_us, sender_len = _HEAD.unpack_from(buf, 0)
+    if magic != MAGIC:
+        raise DecodeError(f"bad magic {magic:#04x}: not a crosspath datagram")
+    if version != FORMAT_VERSION:
+        raise DecodeError(f"unsupported format version {version} (this is {FORMAT_VERSION})")
+    kind: Kind = _enum(_KINDS, kind_value, "message kind")
+    if flags & ~_KNOWN_FLAGS:
+        raise DecodeError(f"unknown header flag bits {flags:#04x}")
+    if not -MAX_TIME_US <= time_us <= MAX_TIME_US:
+        raise DecodeError(f"absurd generation time {time_us} µs")
+    off = _HEAD.size
+    sender = _read_id(buf, off, sender_len, "sender id")
+    off += sender_len
+
+    build: Callable[[Header], Message]
+    if kind is Kind.FUTURE_PATH or kind is Kind.AUTONOMOUS_PATH:
+        x, y, speed, heading, length, width, mode_v, n, widths = _STATE.unpack_from(buf, off)
+        off += _STATE.size
+        mode: Mode = _enum(_MODES, mode_v, "mode")
+        if not (abs(x) <= _MAX_COORD_CM and abs(y) <= _MAX_COORD_CM):
+            raise DecodeError("absurd position")
+        if speed > _MAX_SPEED_CM_S:
+            raise DecodeError(f"absurd speed {speed / 100} m/s")
+        if abs(heading) > _MAX_HEADING:
+            raise DecodeError(f"heading {heading / 1e4} rad beyond ±pi")
+        if not (1 <= length <= MAX_LENGTH_M * 100 and 1 <= width <= MAX_WIDTH_M * 100):
+            raise DecodeError(f"absurd vehicle shape {length / 100} m x {width / 100} m")
+        points, _, off = _read_points(buf, off, kind, n, widths, 3, time_us)
+        cls = FuturePath if kind is Kind.FUTURE_PATH else AutonomousPath
+
+        def build(header: Header) -> Message:
+            return cls(
+                header, x / 100, y / 100, speed / 100, heading / 1e4,
+                length / 100, width / 100, mode, points,
+            )
+
+    elif kind is Kind.COORDINATED_PATH:
+        vehicle = _read_id(buf, off + 1, buf[off], "vehicle id")
+        off += 1 + len(vehicle)
+        mode_v, n, widths = _CP_STATE.unpack_from(buf, off)
+        off += _CP_STATE.size
+        cp_mode: Mode = _enum(_MODES, mode_v, "mode")
+        if cp_mode is Mode.AUTO:
+            raise DecodeError("a coordinated path with mode AUTO")
+        points, cp_speeds, off = _read_points(buf, off, kind, n, widths, 4, time_us)
+        speeds = np.empty(0) if cp_speeds is None else cp_speeds
+
+        def build(header: Header) -> Message:
+            return CoordinatedPath(header, vehicle, cp_mode, points, speeds)
+
+    elif kind is Kind.MODE_COMMAND:
+        vehicle = _read_id(buf, off + 1, buf[off], "vehicle id")
+        off += 1 + len(vehicle)
+        command_v, mode_v = _COMMAND.unpack_from(buf, off)
+        off += _COMMAND.size
+        command: Command = _enum(_COMMANDS, command_v, "command")
+        cmd_mode: Mode = _enum(_MODES, mode_v, "mode")
+        _check_command(command, cmd_mode, DecodeError)
+
+        def build(header: Header) -> Message:
+            return ModeCommand(header, vehicle, command, cmd_mode)
+
+    else:  # Kind.RSU_BEACON
+        intersection = _read_id(buf, off + 1, buf[off], "intersection id")
+        off += 1 + len(intersection)
+        bx, by, radius = _BEACON.unpack_from(buf, off)
+        off += _BEACON.size
+        if not (abs(bx) <= _MAX_COORD_CM and abs(by) <= _MAX_COORD_CM):
+            raise DecodeError("absurd position")
+        if not 1 <= radius <= MAX_RADIUS_M * 100:
+            raise DecodeError(f"absurd coverage radius {radius / 100} m")
+
+        def build(header: Header) -> Message:
+            return RsuBeacon(header, intersection, bx / 100, by / 100, radius / 100)
+
+    auth = _read_trailer(buf, off, flags)
+    return build(Header(sender, seq, time_us, flags, auth))
+
+
+def decode(data: bytes | bytearray | memoryview) -> Message:
+    """The message in one datagram; ``DecodeError`` (and nothing else) for anything malformed."""
+    try:
+        return _decode(data)
+    except DecodeError:
+        raise
+    except (
+        struct.error, ValueError, TypeError, IndexError, OverflowError, KeyError, AttributeError
+    ) as exc:
+        raise DecodeError(f"malformed datagram: {exc}") from exc

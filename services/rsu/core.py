@@ -1,0 +1,496 @@
+"""The RSU's pure core: reservation table, mode manager and velocity manager together.
+
+Sans-IO: ``now`` (float seconds on the run's time base) and decoded messages
+in; messages to send (``Outgoing``) and the next deadline out. No clock reads,
+no asyncio, no Zenoh; the daemon shell and the in-process simulation both
+drive this object.
+
+Per received message (paper §IV-C; the rules are in ``services.rsu.modes``):
+
+* ``FuturePath`` (broadcast): from a car in coverage. An ``AUTO`` car's path
+  goes into the reservation table and is judged; a coordinated car's future
+  path only proves it alive (and can show it has left the intersection): its
+  entry is the coordinated path the RSU sent it. A future path also
+  acknowledges a pending command when its ``mode`` shows the commanded mode;
+  until then the car's future paths are not used for decisions.
+* ``AutonomousPath`` (addressed to this RSU): from a coordinated car; judged,
+  answered with a coordinated path (or a termination).
+* Anything else, anything for another RSU, from a car the RSU does not
+  coordinate, from outside coverage, out of order or malformed: ignored and
+  counted in ``counters``. Nothing a peer sends raises out of ``on_message``.
+
+``tick(now)`` (10 Hz) expires silent cars, repeats pending commands every
+``command_repeat_s`` and sends the beacon every ``beacon_period_s``.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from protocol.messages import (
+    AutonomousPath,
+    Command,
+    CoordinatedPath,
+    FuturePath,
+    Header,
+    Message,
+    Mode,
+    ModeCommand,
+    RsuBeacon,
+    VehiclePath,
+)
+from services.rsu import paths
+from services.rsu.modes import Action, Event, transition
+from services.rsu.reservation import Conflict, ReservationTable
+from services.rsu.velocity import Policy, SpeedPlan, VelocityManager
+
+__all__ = ["Outgoing", "Policy", "RsuConfig", "RsuCore"]
+
+log = logging.getLogger("crosspath.rsu")
+
+FloatArray = npt.NDArray[np.float64]
+
+_MAX_ABS = 1e9  # largest |coordinate| [m] or |time| [s] accepted from a peer
+_DUE_SLACK_S = 1e-6  # a deadline this close counts as reached (float rounding)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class RsuConfig:
+    """One RSU: where it is, what it coordinates, and the paper's parameters.
+
+    ``center`` is the centre of coverage [m] (the beacon's position);
+    ``conflict_zone`` the convex intersection box (K, 2) [m] whose centroid is
+    the intersection centre used for "leaving". Times [s], speeds [m/s],
+    accelerations [m/s²]. The fields after ``beacon_period_s`` tune the
+    ``slot`` policy and the stop holds (see ``services.rsu.velocity``).
+    """
+
+    rsu_id: str
+    intersection: str
+    center: tuple[float, float]
+    conflict_zone: FloatArray
+    coverage_m: float = 150.0
+    d_margin_m: float = 2.8
+    headway_s: float = 1.0
+    t_collision_s: float = 5.0
+    t_free_s: float = 10.0
+    expiry_s: float = 0.5
+    v_max_mps: float = 50 / 3.6
+    accel_mps2: float = 1.5
+    decel_comfort_mps2: float = 2.0
+    policy: Policy = Policy.PAPER
+    command_repeat_s: float = 0.1
+    beacon_period_s: float = 1.0
+    stop_gap_m: float = 2.0  # slot: front bumper to zone edge when it must stop and wait
+    slot_step_s: float = 0.1  # slot: granularity of the entry-time search
+    slot_min_speed_mps: float = 2.0  # slot: below this, stop and wait rather than crawl
+    hold_step_s: float = 0.5  # spacing of the points holding a stop (< 2 * headway)
+
+    def __post_init__(self) -> None:
+        if not self.rsu_id or not self.intersection:
+            raise ValueError("rsu_id and intersection must be non-empty")
+        center = (float(self.center[0]), float(self.center[1]))
+        if not all(math.isfinite(c) for c in center):
+            raise ValueError("center must be finite")
+        object.__setattr__(self, "center", center)
+        object.__setattr__(self, "conflict_zone", paths.convex_polygon(self.conflict_zone))
+        object.__setattr__(self, "policy", Policy(self.policy))
+        for name in (
+            "coverage_m",
+            "d_margin_m",
+            "headway_s",
+            "t_collision_s",
+            "t_free_s",
+            "expiry_s",
+            "v_max_mps",
+            "accel_mps2",
+            "decel_comfort_mps2",
+            "command_repeat_s",
+            "beacon_period_s",
+            "slot_step_s",
+            "slot_min_speed_mps",
+            "hold_step_s",
+        ):
+            value = getattr(self, name)
+            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
+                raise ValueError(f"RsuConfig.{name} must be positive and finite, got {value!r}")
+        if not (math.isfinite(self.stop_gap_m) and self.stop_gap_m >= 0):
+            raise ValueError(f"RsuConfig.stop_gap_m must be >= 0, got {self.stop_gap_m!r}")
+        if self.t_collision_s > self.t_free_s:
+            raise ValueError("t_collision_s must not exceed t_free_s")
+        if self.slot_min_speed_mps >= self.v_max_mps:
+            raise ValueError("slot_min_speed_mps must be below v_max_mps")
+
+
+@dataclass(frozen=True, slots=True)
+class Outgoing:
+    """A message to send: to one car (its cmd stream) or, ``vehicle=None``, the beacon."""
+
+    vehicle: str | None
+    message: Message
+
+
+@dataclass(slots=True)
+class _Pending:
+    """A command repeated until the car's future path shows ``mode``."""
+
+    command: Command
+    mode: Mode
+    last_sent: float
+
+
+@dataclass(slots=True)
+class _Car:
+    """What the RSU knows about one car."""
+
+    vehicle: str
+    mode: Mode = Mode.AUTO
+    x: float = 0.0
+    y: float = 0.0
+    heading: float = 0.0
+    speed: float = 0.0
+    length: float = 4.5
+    width: float = 1.8
+    state_us: int = -(2**62)
+    last_fp_us: int = -(2**62)
+    last_ap_us: int = -(2**62)
+    autonomous: VehiclePath | None = None  # latest path it would drive alone
+    pending: _Pending | None = None
+
+    def observe(self, path: VehiclePath) -> None:
+        if path.header.time_us >= self.state_us:
+            self.state_us = path.header.time_us
+            self.x, self.y = path.x, path.y
+            self.heading, self.speed = path.heading, path.speed
+            self.length, self.width = path.length, path.width
+
+
+def _valid_path(path: VehiclePath) -> bool:
+    scalars = (path.x, path.y, path.speed, path.heading, path.length, path.width)
+    if not all(isinstance(v, int | float) and math.isfinite(v) for v in scalars):
+        return False
+    if path.speed < 0 or path.length < 0 or path.width < 0 or not path.header.sender:
+        return False
+    if abs(path.x) > _MAX_ABS or abs(path.y) > _MAX_ABS:
+        return False
+    pts = path.points
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        return False
+    return bool(np.all(np.isfinite(pts))) and not (pts.size and float(np.abs(pts).max()) > _MAX_ABS)
+
+
+class RsuCore:
+    """One roadside unit's decision logic (pure; see module docstring)."""
+
+    def __init__(self, config: RsuConfig) -> None:
+        self.config = config
+        self.table = ReservationTable(config.d_margin_m, config.headway_s, config.expiry_s)
+        self.velocity = VelocityManager(config)
+        self.counters: collections.Counter[str] = collections.Counter()
+        self._cars: dict[str, _Car] = {}
+        self._seq = 0
+        self._next_beacon: float | None = None
+        self._zone_centre = paths.polygon_centroid(config.conflict_zone)
+
+    # -- queries --------------------------------------------------------------------------
+
+    def mode_of(self, vehicle: str) -> Mode:
+        """The car's mode; AUTO for a car the RSU does not know."""
+        car = self._cars.get(vehicle)
+        return Mode.AUTO if car is None else car.mode
+
+    def modes(self) -> dict[str, Mode]:
+        """Every known car's mode."""
+        return {v: car.mode for v, car in self._cars.items()}
+
+    def pending(self, vehicle: str) -> tuple[Command, Mode] | None:
+        """The command being repeated to the car until it shows the mode, if any."""
+        car = self._cars.get(vehicle)
+        if car is None or car.pending is None:
+            return None
+        return car.pending.command, car.pending.mode
+
+    def next_deadline(self) -> float:
+        """When ``tick`` next has work [s]: a beacon, a repeat, or an expiry."""
+        deadline = 0.0 if self._next_beacon is None else self._next_beacon
+        repeat = self.config.command_repeat_s
+        for car in self._cars.values():
+            if car.pending is not None:
+                deadline = min(deadline, car.pending.last_sent + repeat)
+        return min(deadline, self.table.next_expiry())
+
+    def forget(self, vehicle: str) -> bool:
+        """Drop a car entirely (table entry, mode, pending command)."""
+        known = self._cars.pop(vehicle, None) is not None
+        return self.table.remove(vehicle) or known
+
+    # -- inputs ---------------------------------------------------------------------------
+
+    def on_message(
+        self, now: float, message: Message, rsu_key: str | None = None
+    ) -> list[Outgoing]:
+        """Handle one received message; return what to send."""
+        try:
+            if isinstance(message, FuturePath):
+                return self._on_future_path(now, message)
+            if isinstance(message, AutonomousPath):
+                return self._on_autonomous_path(now, message, rsu_key)
+        except (ValueError, ArithmeticError) as exc:
+            self.counters["errors"] += 1
+            log.warning("rsu %s: dropped %s: %s", self.config.rsu_id, type(message).__name__, exc)
+            return []
+        self.counters["ignored_kind"] += 1
+        return []
+
+    def tick(self, now: float) -> list[Outgoing]:
+        """Periodic work (10 Hz): expiry of silent cars, command repeats, the beacon."""
+        out: list[Outgoing] = []
+        for vehicle in self.table.expire(now):
+            self._apply_silent(vehicle)
+        for vehicle in [v for v in self._cars if v not in self.table]:
+            self._apply_silent(vehicle)
+        repeat = self.config.command_repeat_s
+        for car in self._cars.values():
+            pending = car.pending
+            if pending is not None and now + _DUE_SLACK_S >= pending.last_sent + repeat:
+                pending.last_sent = now
+                message = ModeCommand(self._header(now), car.vehicle, pending.command, pending.mode)
+                out.append(Outgoing(car.vehicle, message))
+                self.counters["repeats"] += 1
+        if self._next_beacon is None or now + _DUE_SLACK_S >= self._next_beacon:
+            cfg = self.config
+            beacon = RsuBeacon(
+                self._header(now), cfg.intersection, cfg.center[0], cfg.center[1], cfg.coverage_m
+            )
+            out.append(Outgoing(None, beacon))
+            self.counters["beacons"] += 1
+            base = now if self._next_beacon is None else self._next_beacon
+            following = base + cfg.beacon_period_s
+            self._next_beacon = following if following > now else now + cfg.beacon_period_s
+        return out
+
+    # -- messages -------------------------------------------------------------------------
+
+    def _header(self, now: float) -> Header:
+        self._seq += 1
+        return Header(sender=self.config.rsu_id, seq=self._seq, time_us=round(now * 1e6))
+
+    def _on_future_path(self, now: float, fp: FuturePath) -> list[Outgoing]:
+        self.counters["fp_rx"] += 1
+        if not _valid_path(fp):
+            self.counters["invalid"] += 1
+            return []
+        vehicle = fp.header.sender
+        car = self._cars.get(vehicle)
+        if car is not None:
+            if fp.header.time_us < car.last_fp_us:
+                self.counters["stale"] += 1
+                return []
+            car.last_fp_us = fp.header.time_us
+            if car.pending is not None and car.pending.mode == fp.mode:
+                car.pending = None
+                self.counters["acks"] += 1
+        cfg = self.config
+        if math.hypot(fp.x - cfg.center[0], fp.y - cfg.center[1]) > cfg.coverage_m:
+            self.counters["out_of_coverage"] += 1
+            return []
+        if car is None:
+            car = _Car(vehicle, last_fp_us=fp.header.time_us)
+            self._cars[vehicle] = car
+            self.counters["vehicles_seen"] += 1
+        car.observe(fp)
+        if car.mode != Mode.AUTO:
+            # Coordinated: the future path is discarded (paper), except that it shows where
+            # the car is; its table entry stays the coordinated path it was sent.
+            if self._leaving(car):
+                return self._apply(now, car, Event.LEAVING, fp, None)
+            self.table.touch(vehicle, now)
+            return []
+        if car.pending is not None and vehicle in self.table:
+            # It has not taken our last command yet: this path does not reflect it.
+            self.table.touch(vehicle, now)
+            self.counters["fp_unacknowledged"] += 1
+            return []
+        car.autonomous = fp
+        return self._decide(now, car, fp)
+
+    def _on_autonomous_path(
+        self, now: float, ap: AutonomousPath, rsu_key: str | None
+    ) -> list[Outgoing]:
+        self.counters["ap_rx"] += 1
+        if rsu_key is not None and rsu_key != self.config.rsu_id:
+            self.counters["foreign_rsu"] += 1
+            return []
+        if not _valid_path(ap):
+            self.counters["invalid"] += 1
+            return []
+        car = self._cars.get(ap.header.sender)
+        if car is None:
+            self.counters["unknown_vehicle"] += 1
+            return []
+        if car.mode == Mode.AUTO:
+            self.counters["ap_not_coordinated"] += 1
+            return []
+        if ap.header.time_us < car.last_ap_us:
+            self.counters["stale"] += 1
+            return []
+        car.last_ap_us = ap.header.time_us
+        car.observe(ap)
+        car.autonomous = ap
+        return self._decide(now, car, ap)
+
+    # -- decisions ------------------------------------------------------------------------
+
+    def _leaving(self, car: _Car) -> bool:
+        return paths.is_leaving(
+            car.x, car.y, car.heading, self.config.conflict_zone, self._zone_centre
+        )
+
+    def _approaching(self, car: _Car, path: VehiclePath, now: float) -> bool:
+        cfg = self.config
+        return paths.is_approaching(
+            car.x,
+            car.y,
+            path.points,
+            cfg.conflict_zone,
+            cfg.center,
+            cfg.coverage_m,
+            now,
+            cfg.t_free_s,
+        )
+
+    def _yields(self, car: _Car, car_points: FloatArray, other: _Car) -> bool:
+        """Must ``car`` (whose path is ``car_points``) give way to ``other``?"""
+        fast = Mode.C_FAST
+        if car.mode == fast and other.mode != fast:
+            return False
+        if other.mode == fast and car.mode != fast:
+            return True
+        if car.mode == fast and other.mode == fast:
+            entry = self.table.get(other.vehicle)
+            zone = self.config.conflict_zone
+            mine = paths.zone_entry_time(car_points, zone)
+            theirs = math.inf if entry is None else paths.zone_entry_time(entry.points, zone)
+            return (mine, car.vehicle) > (theirs, other.vehicle)
+        return True  # neither committed: the path already in the table keeps its way
+
+    def _decide(self, now: float, car: _Car, path: VehiclePath) -> list[Outgoing]:
+        """Judge a car on its autonomous path (see ``services.rsu.modes``) and act."""
+        cfg = self.config
+        plan: SpeedPlan | None = None
+        near: list[Conflict] = []
+        if self._leaving(car):
+            event = Event.LEAVING
+        else:
+            if car.mode == Mode.C_FAST:
+                plan = self.velocity.plan(car.vehicle, path, Mode.C_FAST, now, self.table)
+                query = plan.points
+            else:
+                query = path.points
+            found = self.table.conflicts(car.vehicle, query, now, cfg.t_free_s)
+            horizon = now + cfg.t_collision_s
+            near = [c for c in found if c.time <= horizon]
+            if found:
+                self.counters["conflicts"] += 1
+            yields = False
+            for conflict in near:
+                other = self._cars.get(conflict.vehicle)
+                if other is not None and self._yields(car, query, other):
+                    yields = True
+                    break
+            if yields:
+                event = Event.CONFLICT
+            elif not found and self._approaching(car, path, now):
+                event = Event.FREE_APPROACHING
+            else:
+                event = Event.NO_CONFLICT
+        out = self._apply(now, car, event, path, plan)
+        if car.mode == Mode.C_FAST:
+            reuse = near if plan is not None and event != Event.CONFLICT else None
+            out.extend(self._give_way_to(now, car, reuse))
+        return out
+
+    def _apply(
+        self, now: float, car: _Car, event: Event, path: VehiclePath, plan: SpeedPlan | None
+    ) -> list[Outgoing]:
+        """One transition of the table for ``car``, and what it sends."""
+        self.counters[f"event_{event.name.lower()}"] += 1
+        mode, action = transition(car.mode, event)
+        car.mode = mode
+        out: list[Outgoing] = []
+        vehicle = car.vehicle
+        if action == Action.SEND_TERMINATION:
+            out.append(self._command(now, car, Command.TERMINATE, Mode.AUTO))
+            self.counters["terminations"] += 1
+            self._reserve(now, car, path.points)
+        elif action in (Action.SEND_INITIATION_SLOW, Action.SEND_INITIATION_FAST):
+            out.append(self._command(now, car, Command.INITIATE, mode))
+            self.counters["initiations"] += 1
+            out.append(self._coordinate(now, car, path, plan if mode == Mode.C_FAST else None))
+        elif action == Action.FORGET:
+            self.forget(vehicle)
+        elif mode == Mode.AUTO:
+            self._reserve(now, car, path.points)
+        elif isinstance(path, AutonomousPath):
+            out.append(self._coordinate(now, car, path, plan))
+        else:
+            self.table.touch(vehicle, now)
+        return out
+
+    def _apply_silent(self, vehicle: str) -> None:
+        car = self._cars.get(vehicle)
+        self.counters["expired"] += 1
+        if car is None:
+            self.table.remove(vehicle)
+            return
+        _, action = transition(car.mode, Event.SILENT)
+        if action == Action.FORGET:
+            self.forget(vehicle)
+
+    def _give_way_to(self, now: float, car: _Car, near: list[Conflict] | None) -> list[Outgoing]:
+        """A ``C_FAST`` car has priority: every car its path conflicts with soon must yield."""
+        if near is None:
+            entry = self.table.get(car.vehicle)
+            if entry is None:
+                return []
+            near = self.table.conflicts(car.vehicle, entry.points, now, self.config.t_collision_s)
+        out: list[Outgoing] = []
+        for conflict in near:
+            other = self._cars.get(conflict.vehicle)
+            if other is None or other.autonomous is None or other.mode == Mode.C_SLOW:
+                continue  # unknown, or already slowing
+            other_entry = self.table.get(other.vehicle)
+            other_points = other.autonomous.points if other_entry is None else other_entry.points
+            if not self._yields(other, other_points, car):
+                continue
+            event = Event.LEAVING if self._leaving(other) else Event.CONFLICT
+            self.counters["given_way"] += 1
+            out.extend(self._apply(now, other, event, other.autonomous, None))
+        return out
+
+    def _command(self, now: float, car: _Car, command: Command, mode: Mode) -> Outgoing:
+        car.pending = _Pending(command, mode, now)
+        return Outgoing(car.vehicle, ModeCommand(self._header(now), car.vehicle, command, mode))
+
+    def _reserve(self, now: float, car: _Car, points: FloatArray) -> None:
+        self.table.update(car.vehicle, points, now, (car.length, car.width))
+
+    def _coordinate(
+        self, now: float, car: _Car, path: VehiclePath, plan: SpeedPlan | None
+    ) -> Outgoing:
+        """Compute (unless given), reserve and send the car's coordinated path."""
+        if plan is None:
+            plan = self.velocity.plan(car.vehicle, path, car.mode, now, self.table)
+        self._reserve(now, car, plan.points)
+        self.counters["coordinated_paths"] += 1
+        self.counters[f"plan_{plan.kind}"] += 1
+        message = CoordinatedPath(
+            self._header(now), car.vehicle, car.mode, plan.points, plan.speeds
+        )
+        return Outgoing(car.vehicle, message)

@@ -1,0 +1,114 @@
+"""Mode management (paper §IV-C): the one transition table of the RSU.
+
+Every car the RSU knows is in one of three modes: ``AUTO`` (drives its
+autonomous plan), ``C_SLOW`` (coordinated, slowing), ``C_FAST`` (coordinated,
+speeding up). The RSU turns what it learns about a car into one ``Event`` and
+looks up ``TRANSITIONS[(mode, event)] -> (next mode, action)``; nothing else
+changes a mode. Events, in the order the RSU tests them:
+
+``SILENT``
+    The car's reservation expired (no future path and no autonomous path for
+    ``expiry_s``): it is dropped and its mode forgotten; nothing is sent.
+``LEAVING``
+    The car's current position has passed the conflict zone: outside the zone
+    polygon and heading away from the zone's centre. A coordinated car gets a
+    termination; an AUTO car needs nothing (and is never put into a coordinated
+    mode once it is leaving).
+``CONFLICT``
+    The car's path conflicts, within ``T_collision`` of now, with another car's
+    entry and this car is the one that must yield (see below).
+``FREE_APPROACHING``
+    No conflict within ``T_free`` and the car is approaching the intersection:
+    in coverage, not yet in the zone, its path enters the zone within ``T_free``.
+``NO_CONFLICT``
+    No conflict within ``T_collision``, but not free or not approaching.
+
+Which path is judged, and who yields (our reading of the paper, where it is silent):
+
+* An ``AUTO`` car is judged on its broadcast future path. On a conflict the
+  sender yields (paper: "the first vehicle that sent its future path
+  accelerated": the path already in the table keeps its right of way).
+* A ``C_SLOW`` car's future path is discarded (paper); its table entry is the
+  last coordinated path the RSU sent it (what it has been told to do), and it
+  is judged on each autonomous path it sends: free and approaching ->
+  ``C_FAST``; no conflict within ``T_collision`` -> ``AUTO`` (termination);
+  else it stays ``C_SLOW`` and is sent a new coordinated path.
+* A ``C_FAST`` car is judged on the coordinated path the RSU computes from each
+  autonomous path it sends (``V_max`` through the intersection). A committed
+  ``C_FAST`` car has priority: whenever a ``C_FAST`` car and a car in another
+  mode conflict within ``T_collision``, the other one gets ``CONFLICT`` (is put
+  into ``C_SLOW``), whoever sent the path. Between two ``C_FAST`` cars the
+  later arriver at the zone (larger zone entry time; tie: larger id) yields.
+* Commands are soft state: the RSU repeats a pending initiation or termination
+  every ``command_repeat_s`` until the car's broadcast future path shows the
+  commanded mode; until then, that car's future paths are not used for
+  decisions (they do not reflect the command yet).
+"""
+
+from __future__ import annotations
+
+from enum import IntEnum
+
+from protocol.messages import Mode
+
+
+class Event(IntEnum):
+    """What the RSU learned about one car (see module docstring)."""
+
+    CONFLICT = 1
+    FREE_APPROACHING = 2
+    NO_CONFLICT = 3
+    LEAVING = 4
+    SILENT = 5
+
+
+class Action(IntEnum):
+    """What the RSU sends the car as part of a transition."""
+
+    NONE = 0
+    SEND_INITIATION_SLOW = 1
+    SEND_INITIATION_FAST = 2
+    SEND_TERMINATION = 3
+    FORGET = 4  # drop the car: no message, mode and pending commands forgotten
+
+
+class InvalidTransition(ValueError):
+    """A (mode, event) pair that is not in the transition table."""
+
+
+_A, _S, _F = Mode.AUTO, Mode.C_SLOW, Mode.C_FAST
+
+TRANSITIONS: dict[tuple[Mode, Event], tuple[Mode, Action]] = {
+    # AUTO: initiate on conflict (slow) or on a free approach (fast).
+    (_A, Event.CONFLICT): (_S, Action.SEND_INITIATION_SLOW),
+    (_A, Event.FREE_APPROACHING): (_F, Action.SEND_INITIATION_FAST),
+    (_A, Event.NO_CONFLICT): (_A, Action.NONE),
+    (_A, Event.LEAVING): (_A, Action.NONE),
+    (_A, Event.SILENT): (_A, Action.FORGET),
+    # C_SLOW: judged on its autonomous path; released to C_FAST or AUTO.
+    (_S, Event.CONFLICT): (_S, Action.NONE),
+    (_S, Event.FREE_APPROACHING): (_F, Action.SEND_INITIATION_FAST),
+    (_S, Event.NO_CONFLICT): (_A, Action.SEND_TERMINATION),
+    (_S, Event.LEAVING): (_A, Action.SEND_TERMINATION),
+    (_S, Event.SILENT): (_A, Action.FORGET),
+    # C_FAST: keeps V_max through the intersection until it leaves or loses priority.
+    (_F, Event.CONFLICT): (_S, Action.SEND_INITIATION_SLOW),
+    (_F, Event.FREE_APPROACHING): (_F, Action.NONE),
+    (_F, Event.NO_CONFLICT): (_F, Action.NONE),
+    (_F, Event.LEAVING): (_A, Action.SEND_TERMINATION),
+    (_F, Event.SILENT): (_A, Action.FORGET),
+}
+
+
+def transition(mode: Mode, event: Event) -> tuple[Mode, Action]:
+    """Look up the next mode and the action; raise InvalidTransition for anything else.
+
+    Plain ints are refused (an IntEnum hashes like its value, so ``(0, 1)``
+    would otherwise silently match a pair of the table).
+    """
+    if not isinstance(mode, Mode) or not isinstance(event, Event):
+        raise InvalidTransition(f"not a (Mode, Event) pair: ({mode!r}, {event!r})")
+    try:
+        return TRANSITIONS[(mode, event)]
+    except KeyError:
+        raise InvalidTransition(f"no transition for {mode.name} on {event.name}") from None

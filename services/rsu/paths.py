@@ -1,0 +1,197 @@
+"""Geometry and timing helpers on paths, for the RSU (pure, vectorised with numpy).
+
+A path is an (N, 3) float array of car-centre positions x, y [m] with pass
+times t [s, run time base], as in ``protocol.messages``. A conflict zone is a
+convex polygon (K, 2) [m], either orientation.
+
+Eq. (1) of the paper gives the pass time of point n from the speed on the
+segment that ends at it::
+
+    t_n = t_{n-1} + |p_n - p_{n-1}| / v_n,   t_0 = current time
+
+``retime`` applies it, ``segment_speeds`` inverts it. Zone helpers test points
+only (no segment clipping): paths have points at most a few metres apart,
+much less than the width of an intersection box.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import numpy.typing as npt
+
+FloatArray = npt.NDArray[np.float64]
+BoolArray = npt.NDArray[np.bool_]
+
+_EPS = 1e-9
+
+
+def as_path(points: npt.ArrayLike) -> FloatArray:
+    """Points as a float (N, 3) array; raises ValueError on a wrong shape."""
+    arr = np.asarray(points, dtype=np.float64)
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise ValueError(f"a path is an (N, 3) array of x, y, t; got shape {arr.shape}")
+    return arr
+
+
+def convex_polygon(polygon: npt.ArrayLike) -> FloatArray:
+    """Validate a convex polygon (K >= 3 vertices, non-degenerate); return a read-only copy."""
+    arr = np.array(polygon, dtype=np.float64)
+    if arr.ndim != 2 or arr.shape[1] != 2 or arr.shape[0] < 3:
+        raise ValueError(f"a conflict zone is a (K>=3, 2) polygon; got shape {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError("conflict zone vertices must be finite")
+    edges = np.roll(arr, -1, axis=0) - arr
+    nxt = np.roll(edges, -1, axis=0)
+    cross = edges[:, 0] * nxt[:, 1] - edges[:, 1] * nxt[:, 0]
+    if not (np.all(cross >= -_EPS) or np.all(cross <= _EPS)):
+        raise ValueError("conflict zone polygon must be convex")
+    if abs(polygon_area(arr)) < _EPS:
+        raise ValueError("conflict zone polygon has no area")
+    arr.flags.writeable = False
+    return arr
+
+
+def polygon_area(polygon: FloatArray) -> float:
+    """Signed area [m²] (positive when counter-clockwise)."""
+    x, y = polygon[:, 0], polygon[:, 1]
+    return float(0.5 * (np.dot(x, np.roll(y, -1)) - np.dot(np.roll(x, -1), y)))
+
+
+def polygon_centroid(polygon: FloatArray) -> tuple[float, float]:
+    """Area centroid of a simple polygon [m]: the intersection centre of a conflict zone."""
+    x, y = polygon[:, 0], polygon[:, 1]
+    xn, yn = np.roll(x, -1), np.roll(y, -1)
+    cross = x * yn - xn * y
+    area = 0.5 * float(cross.sum())
+    if abs(area) < _EPS:
+        return float(x.mean()), float(y.mean())
+    cx = float(((x + xn) * cross).sum()) / (6.0 * area)
+    cy = float(((y + yn) * cross).sum()) / (6.0 * area)
+    return cx, cy
+
+
+def inside_convex(xy: npt.ArrayLike, polygon: FloatArray) -> BoolArray:
+    """Which points (M, 2+) lie inside or on the edge of a convex polygon (K, 2)."""
+    pts = np.asarray(xy, dtype=np.float64)
+    if pts.ndim == 1:
+        pts = pts.reshape(1, -1)
+    px = pts[:, 0:1]
+    py = pts[:, 1:2]
+    ax = polygon[:, 0][None, :]
+    ay = polygon[:, 1][None, :]
+    ex = (np.roll(polygon[:, 0], -1) - polygon[:, 0])[None, :]
+    ey = (np.roll(polygon[:, 1], -1) - polygon[:, 1])[None, :]
+    cross = ex * (py - ay) - ey * (px - ax)
+    tol = _EPS * max(1.0, float(np.abs(polygon).max()))
+    result: BoolArray = np.all(cross >= -tol, axis=1) | np.all(cross <= tol, axis=1)
+    return result
+
+
+def segment_lengths(points: FloatArray) -> FloatArray:
+    """Length of the segment ending at each point [m]; 0 for the first."""
+    d = np.zeros(points.shape[0], dtype=np.float64)
+    if points.shape[0] > 1:
+        d[1:] = np.hypot(np.diff(points[:, 0]), np.diff(points[:, 1]))
+    return d
+
+
+def arc_length(points: FloatArray) -> FloatArray:
+    """Distance along the path from its first point to each point [m]."""
+    return np.cumsum(segment_lengths(points))
+
+
+def segment_speeds(points: FloatArray, v0: float) -> FloatArray:
+    """Eq. (1) inverted: the constant speed on the segment ending at each point [m/s].
+
+    ``v0`` (the car's current speed) is used for the first point. A zero-length
+    segment (a held stop) has speed 0; a segment with no time to cover a
+    positive length has speed ``inf``.
+    """
+    n = points.shape[0]
+    v = np.empty(n, dtype=np.float64)
+    if n == 0:
+        return v
+    v[0] = v0
+    if n > 1:
+        d = segment_lengths(points)[1:]
+        dt = np.diff(points[:, 2])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s = np.where(d <= 0.0, 0.0, np.where(dt > 0.0, d / np.where(dt > 0.0, dt, 1.0), np.inf))
+        v[1:] = s
+    return v
+
+
+def retime(points: FloatArray, speeds: FloatArray, t0: float) -> FloatArray:
+    """Eq. (1): new pass times from the constant speed on each segment (ending at each point).
+
+    Returns a new (N, 3) array with the same positions. A segment of positive
+    length at speed <= 0 is never covered: it and every later point get
+    ``inf``. Zero-length segments take no time.
+    """
+    n = points.shape[0]
+    out = np.array(points, dtype=np.float64, copy=True)
+    if n == 0:
+        return out
+    d = segment_lengths(points)
+    dt = np.zeros(n, dtype=np.float64)
+    if n > 1:
+        seg_v = np.asarray(speeds, dtype=np.float64)[1:]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            step = np.where(d[1:] <= 0.0, 0.0, np.where(seg_v > 0.0, d[1:] / seg_v, np.inf))
+        dt[1:] = step
+    out[:, 2] = t0 + np.cumsum(dt)
+    return out
+
+
+def zone_span(points: FloatArray, polygon: FloatArray) -> tuple[int, int] | None:
+    """(first index inside the zone, first index after leaving it again) or None.
+
+    The exit index is N when the path ends inside the zone.
+    """
+    if points.shape[0] == 0:
+        return None
+    inside = inside_convex(points[:, :2], polygon)
+    idx = np.flatnonzero(inside)
+    if idx.size == 0:
+        return None
+    first = int(idx[0])
+    after = np.flatnonzero(~inside[first:])
+    exit_index = first + int(after[0]) if after.size else points.shape[0]
+    return first, exit_index
+
+
+def zone_entry_time(points: FloatArray, polygon: FloatArray) -> float:
+    """Pass time of the first point inside the zone [s]; ``inf`` if the path never enters."""
+    span = zone_span(points, polygon)
+    if span is None:
+        return math.inf
+    return float(points[span[0], 2])
+
+
+def is_leaving(
+    x: float, y: float, heading: float, polygon: FloatArray, centre: tuple[float, float]
+) -> bool:
+    """The car has passed the conflict zone: outside it and heading away from its centre."""
+    if bool(inside_convex(np.array([[x, y]]), polygon)[0]):
+        return False
+    return math.cos(heading) * (x - centre[0]) + math.sin(heading) * (y - centre[1]) > 0.0
+
+
+def is_approaching(
+    x: float,
+    y: float,
+    points: FloatArray,
+    polygon: FloatArray,
+    rsu_centre: tuple[float, float],
+    coverage_m: float,
+    now: float,
+    horizon_s: float,
+) -> bool:
+    """In coverage, not yet in the zone, and the path enters it within ``horizon_s`` of ``now``."""
+    if math.hypot(x - rsu_centre[0], y - rsu_centre[1]) > coverage_m:
+        return False
+    if bool(inside_convex(np.array([[x, y]]), polygon)[0]):
+        return False
+    return zone_entry_time(points, polygon) <= now + horizon_s

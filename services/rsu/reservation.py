@@ -1,0 +1,317 @@
+"""The reservation table: every car's latest future path, indexed in space and time.
+
+Two paths conflict (paper §IV-C) when a point of each lies within ``d_margin``
+[m] of the other (Euclidean, car centres, ``<=``) and their pass times differ by
+less than ``headway`` [s] (``<``), counting only points with
+``now <= t <= now + horizon``.
+
+Index: a uniform grid over (x, y, t) with cells of ``d_margin`` x ``d_margin``
+x ``headway`` (a hair larger, so that float rounding can never push a
+conflicting pair two cells apart). Each cell key maps to the set of cars with
+a point in it; a query looks up the 3x3x3 neighbourhood of each of its own
+cells, which is guaranteed to contain every point it can conflict with, then
+checks only those cars exactly, all pairs vectorised. Cell coordinates wrap
+modulo 2**21 per axis when packed into one integer key; a wrap only adds
+candidates (the exact check removes them), it never loses a conflict.
+
+``naive_conflicts`` is the brute-force all-pairs reference (tests, benchmark).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Collection, Iterator
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+FloatArray = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.int64]
+
+_AXIS_BITS = 21
+_MASK = (1 << _AXIS_BITS) - 1
+_CELL_SLACK = 1.0 + 1e-9
+_MAX_ABS = 1e9  # largest |x|, |y| [m] or |t| [s] accepted
+
+_OFFSETS = np.array(
+    [(dx, dy, dt) for dx in (-1, 0, 1) for dy in (-1, 0, 1) for dt in (-1, 0, 1)],
+    dtype=np.int64,
+)
+
+
+@dataclass(frozen=True, slots=True)
+class Conflict:
+    """A conflict between the queried path and another car's entry.
+
+    ``time`` is when the conflict starts: the earliest, over conflicting point
+    pairs, of the later of the two pass times [s] (so "a conflict within
+    horizon H" is ``time <= now + H``). ``self_time`` / ``other_time`` are the
+    earliest pass times among the conflicting points of each path [s];
+    ``x``, ``y`` the queried path's first (lowest index) conflicting point [m].
+    """
+
+    vehicle: str
+    time: float
+    self_time: float
+    other_time: float
+    x: float
+    y: float
+
+
+@dataclass(slots=True, eq=False)
+class Entry:
+    """One car's reservation: its path, shape, and when it was last refreshed."""
+
+    vehicle: str
+    points: FloatArray
+    length: float
+    width: float
+    updated: float
+    keys: IntArray
+
+    def expires_at(self, expiry_s: float) -> float:
+        return self.updated + expiry_s
+
+
+def _pack(ix: IntArray, iy: IntArray, it: IntArray) -> IntArray:
+    key: IntArray = ((ix & _MASK) << (2 * _AXIS_BITS)) | ((iy & _MASK) << _AXIS_BITS) | (it & _MASK)
+    return key
+
+
+def _pair_conflict(
+    vehicle: str, q: FloatArray, o: FloatArray, d2: float, headway: float
+) -> Conflict | None:
+    """Exact check of two windowed point sets; the one predicate both queries share."""
+    if q.shape[0] == 0 or o.shape[0] == 0:
+        return None
+    dx = q[:, 0:1] - o[None, :, 0]
+    dy = q[:, 1:2] - o[None, :, 1]
+    dt = np.abs(q[:, 2:3] - o[None, :, 2])
+    mask = ((dx * dx + dy * dy) <= d2) & (dt < headway)
+    if not mask.any():
+        return None
+    qi, oj = np.nonzero(mask)
+    tq = q[qi, 2]
+    to = o[oj, 2]
+    first = int(qi.min())
+    return Conflict(
+        vehicle=vehicle,
+        time=float(np.maximum(tq, to).min()),
+        self_time=float(tq.min()),
+        other_time=float(to.min()),
+        x=float(q[first, 0]),
+        y=float(q[first, 1]),
+    )
+
+
+class ReservationTable:
+    """Latest path per car, expiring ``expiry_s`` after its last refresh; space-time indexed."""
+
+    def __init__(self, d_margin_m: float = 2.8, headway_s: float = 1.0, expiry_s: float = 0.5):
+        for name, value in (("d_margin_m", d_margin_m), ("headway_s", headway_s)):
+            if not (math.isfinite(value) and value > 0.0):
+                raise ValueError(f"{name} must be a positive finite number, got {value!r}")
+        if not (math.isfinite(expiry_s) and expiry_s > 0.0):
+            raise ValueError(f"expiry_s must be a positive finite number, got {expiry_s!r}")
+        self.d_margin_m = float(d_margin_m)
+        self.headway_s = float(headway_s)
+        self.expiry_s = float(expiry_s)
+        self._d2 = self.d_margin_m * self.d_margin_m
+        self._cell_xy = self.d_margin_m * _CELL_SLACK
+        self._cell_t = self.headway_s * _CELL_SLACK
+        self._entries: dict[str, Entry] = {}
+        self._index: dict[int, set[str]] = {}
+
+    # -- contents -------------------------------------------------------------------------
+
+    def __len__(self) -> int:
+        return len(self._entries)
+
+    def __contains__(self, vehicle: object) -> bool:
+        return vehicle in self._entries
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._entries)
+
+    def get(self, vehicle: str) -> Entry | None:
+        return self._entries.get(vehicle)
+
+    def is_live(self, vehicle: str, now: float) -> bool:
+        entry = self._entries.get(vehicle)
+        return entry is not None and now < entry.updated + self.expiry_s
+
+    def next_expiry(self) -> float:
+        """When the next entry expires [s]; ``inf`` for an empty table."""
+        if not self._entries:
+            return math.inf
+        return min(e.updated for e in self._entries.values()) + self.expiry_s
+
+    # -- updates --------------------------------------------------------------------------
+
+    def _cells(self, points: FloatArray) -> tuple[IntArray, IntArray, IntArray]:
+        ix = np.floor(points[:, 0] / self._cell_xy).astype(np.int64)
+        iy = np.floor(points[:, 1] / self._cell_xy).astype(np.int64)
+        it = np.floor(points[:, 2] / self._cell_t).astype(np.int64)
+        return ix, iy, it
+
+    def update(
+        self,
+        vehicle: str,
+        points: npt.ArrayLike,
+        now: float,
+        shape: tuple[float, float] = (4.5, 1.8),
+    ) -> None:
+        """Store ``points`` (N, 3) as the car's reservation, refreshed at ``now``.
+
+        Raises ValueError (and changes nothing) for a wrong shape or non-finite
+        or absurdly large values.
+        """
+        pts = np.array(points, dtype=np.float64)
+        if pts.ndim != 2 or pts.shape[1] != 3:
+            raise ValueError(f"a path is an (N, 3) array of x, y, t; got shape {pts.shape}")
+        if not np.all(np.isfinite(pts)) or (pts.size and float(np.abs(pts).max()) > _MAX_ABS):
+            raise ValueError("path points must be finite and within ±1e9")
+        if not math.isfinite(now):
+            raise ValueError("now must be finite")
+        length, width = float(shape[0]), float(shape[1])
+        if not (math.isfinite(length) and math.isfinite(width)):
+            raise ValueError("vehicle shape must be finite")
+        pts.flags.writeable = False
+        keys: IntArray = np.unique(_pack(*self._cells(pts)))
+        self._unindex(vehicle)
+        index = self._index
+        for key in keys.tolist():
+            cell = index.get(key)
+            if cell is None:
+                index[key] = {vehicle}
+            else:
+                cell.add(vehicle)
+        self._entries[vehicle] = Entry(vehicle, pts, length, width, float(now), keys)
+
+    def touch(self, vehicle: str, now: float) -> bool:
+        """Refresh a car's entry without changing its path (the car is alive)."""
+        entry = self._entries.get(vehicle)
+        if entry is None:
+            return False
+        entry.updated = max(entry.updated, float(now))
+        return True
+
+    def _unindex(self, vehicle: str) -> None:
+        entry = self._entries.get(vehicle)
+        if entry is None:
+            return
+        index = self._index
+        for key in entry.keys.tolist():
+            cell = index.get(key)
+            if cell is not None:
+                cell.discard(vehicle)
+                if not cell:
+                    del index[key]
+
+    def remove(self, vehicle: str) -> bool:
+        """Drop a car's entry; False if it had none."""
+        if vehicle not in self._entries:
+            return False
+        self._unindex(vehicle)
+        del self._entries[vehicle]
+        return True
+
+    def expire(self, now: float) -> list[str]:
+        """Drop every entry not refreshed for ``expiry_s``; return their cars."""
+        gone = [v for v, e in self._entries.items() if now >= e.updated + self.expiry_s]
+        for vehicle in gone:
+            self.remove(vehicle)
+        return gone
+
+    # -- queries --------------------------------------------------------------------------
+
+    def _window(self, points: FloatArray, now: float, horizon_s: float) -> FloatArray:
+        t = points[:, 2]
+        windowed: FloatArray = points[(t >= now) & (t <= now + horizon_s)]
+        return windowed
+
+    def _others(
+        self, vehicle: str, now: float, exclude: Collection[str], candidates: Collection[str]
+    ) -> list[Entry]:
+        out = []
+        for other in candidates:
+            if other == vehicle or other in exclude:
+                continue
+            entry = self._entries[other]
+            if now < entry.updated + self.expiry_s:
+                out.append(entry)
+        out.sort(key=lambda e: e.vehicle)
+        return out
+
+    def candidates(self, points: FloatArray) -> set[str]:
+        """Cars with a point in the 3x3x3 cell neighbourhood of any of ``points``."""
+        if points.shape[0] == 0 or not self._index:
+            return set()
+        ix, iy, it = self._cells(points)
+        _, first = np.unique(_pack(ix, iy, it), return_index=True)
+        ix, iy, it = ix[first], iy[first], it[first]
+        keys = _pack(
+            ix[:, None] + _OFFSETS[None, :, 0],
+            iy[:, None] + _OFFSETS[None, :, 1],
+            it[:, None] + _OFFSETS[None, :, 2],
+        )
+        found: set[str] = set()
+        get = self._index.get
+        for key in np.unique(keys).tolist():
+            cell = get(key)
+            if cell:
+                found |= cell
+        return found
+
+    def conflicts(
+        self,
+        vehicle: str,
+        points: npt.ArrayLike,
+        now: float,
+        horizon_s: float,
+        exclude: Collection[str] = (),
+    ) -> list[Conflict]:
+        """Conflicts of ``vehicle``'s ``points`` with every other live entry, sorted by time."""
+        q = self._window(_checked(points), now, horizon_s)
+        if q.shape[0] == 0:
+            return []
+        others = self._others(vehicle, now, exclude, self.candidates(q))
+        if not others:
+            return []
+        found = []
+        for entry in others:
+            o = self._window(entry.points, now, horizon_s)
+            conflict = _pair_conflict(entry.vehicle, q, o, self._d2, self.headway_s)
+            if conflict is not None:
+                found.append(conflict)
+        found.sort(key=lambda c: (c.time, c.vehicle))
+        return found
+
+    def naive_conflicts(
+        self,
+        vehicle: str,
+        points: npt.ArrayLike,
+        now: float,
+        horizon_s: float,
+        exclude: Collection[str] = (),
+    ) -> list[Conflict]:
+        """Same answer as ``conflicts`` by brute force: every point pair of every entry."""
+        q = self._window(_checked(points), now, horizon_s)
+        found = []
+        for entry in self._others(vehicle, now, exclude, list(self._entries)):
+            o = self._window(entry.points, now, horizon_s)
+            conflict = _pair_conflict(entry.vehicle, q, o, self._d2, self.headway_s)
+            if conflict is not None:
+                found.append(conflict)
+        found.sort(key=lambda c: (c.time, c.vehicle))
+        return found
+
+
+def _checked(points: npt.ArrayLike) -> FloatArray:
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise ValueError(f"a path is an (N, 3) array of x, y, t; got shape {pts.shape}")
+    if not np.all(np.isfinite(pts)) or (pts.size and float(np.abs(pts).max()) > _MAX_ABS):
+        raise ValueError("path points must be finite and within ±1e9")
+    return pts

@@ -1,0 +1,433 @@
+"""Velocity manager: the coordinated path of a car, from its latest autonomous path.
+
+A coordinated path keeps the autonomous path's positions and changes only the
+speeds (paper §III-B: "the vehicle decides the trajectory, the RSU determines
+the speed"). It carries a target speed per point [m/s] and the pass times the
+car will really achieve following them within its limits (accelerate at most
+``accel_mps2``, brake at ``decel_comfort_mps2``), so that the RSU's table entry
+for a coordinated car is honest. Times follow eq. (1) of the paper (constant
+speed between consecutive points), the constant speed on a segment being the
+mean of its end speeds (exact for constant acceleration).
+
+A car that is told to stop holds its stop position until the horizon (``now +
+T_free``), as a future path does: hold points every ``hold_step_s`` or closer,
+so that any crossing point is less than one headway from one of them. The
+positions of a stopping path are therefore the autonomous path's up to where the
+car stops, then the stop point repeated.
+
+Two policies (``Policy``):
+
+``paper``
+    ``C_SLOW``: target speed 0 at every point; the car brakes comfortably from
+    its current speed; the path is the braking curve to the exact stop point,
+    then the hold. ``C_FAST``: ``V_max`` at every point up to the zone exit plus
+    one car length, then the autonomous path's own speeds (distance/time between
+    its consecutive points); the car accelerates at ``accel_mps2``.
+``slot`` (beyond the paper)
+    ``C_FAST`` as in ``paper``. ``C_SLOW``: the earliest zone entry time ``t*``
+    (the fastest entry plus 0, 1, 2... ``slot_step_s``, up to ``T_free``) whose
+    retimed path has no conflict with the table, and the fastest profile that
+    meets it: brake to a constant speed ``v_c`` (found by bisection) so as to
+    reach the zone entry no earlier than ``t*``, then accelerate towards
+    ``V_max``. If even ``slot_min_speed_mps`` is too fast, the car stops
+    ``stop_gap_m`` (front bumper) before the zone and waits until it must
+    start again to enter at ``t*``. If no such path exists (the car cannot stop
+    before the zone any more, or no gap within ``T_free``) it falls back to the
+    ``paper`` stop. A path that never reaches the zone, or a car already in
+    it, also gets the ``paper`` stop.
+
+The positions are the autonomous path's distinct positions: repeated points
+(a held stop at its end) are merged, and the autonomous path is taken to stop
+at its end in that case.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Collection
+from dataclasses import dataclass
+from enum import StrEnum
+from typing import TYPE_CHECKING
+
+import numpy as np
+import numpy.typing as npt
+
+from protocol.messages import Mode, VehiclePath
+from services.rsu import paths
+from services.rsu.reservation import ReservationTable
+
+if TYPE_CHECKING:
+    from services.rsu.core import RsuConfig
+
+FloatArray = npt.NDArray[np.float64]
+
+_SAME_POINT_M = 1e-6
+_MAX_HOLDS = 20
+_VC_GRID = 24
+_VC_ROUNDS = 3
+
+
+class Policy(StrEnum):
+    """Velocity manager policy: the paper's, or ours (see module docstring)."""
+
+    PAPER = "paper"
+    SLOT = "slot"
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class SpeedPlan:
+    """Body of a coordinated path: points (M, 3) x, y, t and target speeds (M,) [m/s].
+
+    ``kind`` says how it was made (``stop``, ``fast``, ``slot``, ``slot_stop``,
+    ``slot_fallback``); ``entry_time`` is the planned zone entry [s] (``inf``
+    when the car does not reach the zone on this path).
+    """
+
+    points: FloatArray
+    speeds: FloatArray
+    kind: str
+    entry_time: float = math.inf
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class _Track:
+    """An autonomous path reduced to distinct positions, with arc lengths and own speeds."""
+
+    xy: FloatArray  # (M, 2)
+    s: FloatArray  # (M,) arc length [m]
+    d: FloatArray  # (M,) segment length ending at each point [m]
+    v_ap: FloatArray  # (M,) the autonomous path's own speed on each segment [m/s]
+    t0: float
+    v0: float
+    t_end: float  # latest time the plan must cover [s]
+
+
+def _track(path: VehiclePath, v_max: float, now: float, t_free: float) -> _Track:
+    pts = np.asarray(path.points, dtype=np.float64)
+    if pts.shape[0] == 0:
+        pts = np.array([[path.x, path.y, path.header.time_s]], dtype=np.float64)
+    d_all = paths.segment_lengths(pts)
+    keep = d_all > _SAME_POINT_M
+    keep[0] = True
+    ends_stopped = pts.shape[0] == 1 or not bool(keep[-1])
+    kept = pts[keep]
+    d = paths.segment_lengths(kept)
+    v_ap = np.clip(paths.segment_speeds(kept, float(path.speed)), 0.0, v_max)
+    if ends_stopped:
+        v_ap[-1] = 0.0
+    t0 = float(pts[0, 2])
+    t_end = max(float(pts[-1, 2]), now + t_free, t0 + t_free)
+    return _Track(
+        xy=kept[:, :2].copy(),
+        s=np.cumsum(d),
+        d=d,
+        v_ap=v_ap,
+        t0=t0,
+        v0=max(0.0, float(path.speed)),
+        t_end=t_end,
+    )
+
+
+def _segment_times(d: FloatArray, v: FloatArray) -> FloatArray:
+    """Time spent on each segment (ending at each point) at the mean of its end speeds."""
+    dt = np.zeros(d.shape[0], dtype=np.float64)
+    if d.shape[0] > 1:
+        mean = 0.5 * (v[:-1] + v[1:])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            dt[1:] = np.where(d[1:] <= 0.0, 0.0, np.where(mean > 0.0, d[1:] / mean, np.inf))
+    return dt
+
+
+def _holds(x: float, y: float, t_from: float, t_until: float, step: float) -> FloatArray:
+    """Points holding (x, y) after ``t_from`` up to ``t_until``, at most ``step`` apart."""
+    span = t_until - t_from
+    if span <= 0.0:
+        return np.empty((0, 3), dtype=np.float64)
+    count = min(_MAX_HOLDS, max(1, math.ceil(span / step)))
+    t = t_from + span * np.arange(1, count + 1, dtype=np.float64) / count
+    return np.column_stack([np.full(count, x), np.full(count, y), t])
+
+
+def _finish(
+    xy: FloatArray,
+    d: FloatArray,
+    v: FloatArray,
+    targets: FloatArray,
+    t_start: float,
+    t_end: float,
+    hold_step: float,
+) -> tuple[FloatArray, FloatArray]:
+    """Points and target speeds for a profile ``v`` (speed the car has at each point).
+
+    Points after the first one the car cannot reach are dropped; a car that ends
+    at rest holds its last point until ``t_end``.
+    """
+    dt = _segment_times(d, v)
+    t = t_start + np.cumsum(dt)
+    reach = np.isfinite(t)
+    m = int(np.argmin(reach)) if not reach.all() else t.shape[0]
+    pts = np.column_stack([xy[:m], t[:m]])
+    tg = targets[:m]
+    if m < t.shape[0] or v[m - 1] <= 0.0:
+        hold = _holds(float(pts[-1, 0]), float(pts[-1, 1]), float(pts[-1, 2]), t_end, hold_step)
+        pts = np.vstack([pts, hold])
+        tg = np.concatenate([tg, np.zeros(hold.shape[0])])
+    return pts, tg
+
+
+def _envelope(d: FloatArray, cap: FloatArray, decel: float) -> FloatArray:
+    """Squared speed limit at each point from the caps there and ahead, braking at ``decel``.
+
+    ``env[i] = min over j >= i of cap[j]^2 + 2 decel (s_j - s_i)``: a reverse
+    cumulative minimum, vectorised.
+    """
+    s = np.cumsum(d)
+    key = cap * cap + 2.0 * decel * s
+    env: FloatArray = np.minimum.accumulate(key[::-1])[::-1] - 2.0 * decel * s
+    return np.maximum(env, 0.0)
+
+
+def _kinematic(d: FloatArray, cap: FloatArray, v0: float, accel: float, decel: float) -> FloatArray:
+    """Speed at each point: as fast as ``cap`` allows, within the accel/decel limits.
+
+    The car brakes at ``decel`` ahead of a lower cap; starting above the caps, it
+    brakes at ``decel`` until it is under them (it cannot do better comfortably).
+    """
+    n = d.shape[0]
+    v = np.empty(n, dtype=np.float64)
+    if n == 0:
+        return v
+    env = _envelope(d, cap, decel).tolist()
+    dl = d.tolist()
+    cur = v0 * v0
+    v[0] = v0
+    for i in range(1, n):
+        hi = cur + 2.0 * accel * dl[i]
+        lo = cur - 2.0 * decel * dl[i]
+        cur = max(lo, min(env[i], hi), 0.0)
+        v[i] = math.sqrt(cur)
+    return v
+
+
+class VelocityManager:
+    """Computes coordinated paths for one RSU's configuration (pure)."""
+
+    def __init__(self, config: RsuConfig) -> None:
+        self.config = config
+        self.policy = Policy(config.policy)
+
+    # -- public ---------------------------------------------------------------------------
+
+    def plan(
+        self,
+        vehicle: str,
+        path: VehiclePath,
+        mode: Mode,
+        now: float,
+        table: ReservationTable,
+        exclude: Collection[str] = (),
+    ) -> SpeedPlan:
+        """Coordinated path body for ``vehicle`` in ``mode`` from its autonomous ``path``."""
+        cfg = self.config
+        track = _track(path, cfg.v_max_mps, now, cfg.t_free_s)
+        if mode == Mode.C_FAST:
+            return self._fast(track, path.length)
+        if mode == Mode.C_SLOW:
+            if self.policy == Policy.SLOT:
+                return self._slot(vehicle, track, path.length, now, table, exclude)
+            return self._stop(track)
+        raise ValueError(f"no coordinated path for mode {mode!r}")
+
+    # -- paper ----------------------------------------------------------------------------
+
+    def _stop(self, tr: _Track, kind: str = "stop") -> SpeedPlan:
+        """Brake comfortably from the current speed to the exact stop point, then hold."""
+        cfg = self.config
+        b = cfg.decel_comfort_mps2
+        v0 = tr.v0
+        s_stop = v0 * v0 / (2.0 * b)
+        v = np.sqrt(np.maximum(v0 * v0 - 2.0 * b * tr.s, 0.0))
+        k = max(1, int(np.searchsorted(tr.s, s_stop, side="right")))  # points 0..k-1 reached
+        xy, d, vk = tr.xy[:k], tr.d[:k], v[:k]
+        if k < tr.s.shape[0] and s_stop > tr.s[k - 1] + 1e-3:
+            frac = (s_stop - tr.s[k - 1]) / tr.d[k]
+            xy = np.vstack([xy, tr.xy[k - 1] + frac * (tr.xy[k] - tr.xy[k - 1])])
+            d = np.append(d, s_stop - tr.s[k - 1])
+            vk = np.append(vk, 0.0)
+        t = tr.t0 + np.cumsum(_segment_times(d, vk))
+        pts = np.column_stack([xy, t])
+        hold = _holds(float(xy[-1, 0]), float(xy[-1, 1]), float(t[-1]), tr.t_end, cfg.hold_step_s)
+        pts = np.vstack([pts, hold])
+        return SpeedPlan(pts, np.zeros(pts.shape[0]), kind)
+
+    def _fast_caps(self, tr: _Track, length: float) -> tuple[FloatArray, int | None]:
+        """``V_max`` up to the zone exit plus one car length, then the path's own speeds."""
+        cfg = self.config
+        cap = np.full(tr.s.shape[0], cfg.v_max_mps)
+        span = paths.zone_span(tr.xy, cfg.conflict_zone)
+        if span is not None and span[1] < tr.s.shape[0]:
+            after = tr.s > tr.s[span[1]] + length
+            cap[after] = tr.v_ap[after]
+        if tr.v_ap[-1] <= 0.0:
+            cap[-1] = 0.0
+        return cap, (None if span is None else span[0])
+
+    def _fast(self, tr: _Track, length: float) -> SpeedPlan:
+        cfg = self.config
+        cap, entry = self._fast_caps(tr, length)
+        v = _kinematic(tr.d, cap, tr.v0, cfg.accel_mps2, cfg.decel_comfort_mps2)
+        pts, speeds = _finish(tr.xy, tr.d, v, cap, tr.t0, tr.t_end, cfg.hold_step_s)
+        reached = entry is not None and entry < pts.shape[0]
+        entry_time = float(pts[entry, 2]) if reached and entry is not None else math.inf
+        return SpeedPlan(pts, speeds, "fast", entry_time)
+
+    # -- slot -----------------------------------------------------------------------------
+
+    def _slot(
+        self,
+        vehicle: str,
+        tr: _Track,
+        length: float,
+        now: float,
+        table: ReservationTable,
+        exclude: Collection[str],
+    ) -> SpeedPlan:
+        cfg = self.config
+        cap, entry = self._fast_caps(tr, length)
+        if entry is None or entry == 0:
+            return self._stop(tr, "slot_fallback")
+        env_after = _envelope(tr.d, cap, cfg.decel_comfort_mps2)
+        fastest = self._cruise(tr, entry, env_after, cfg.v_max_mps)
+        t_fast = tr.t0 + float(np.sum(_segment_times(tr.d[: entry + 1], fastest[: entry + 1])))
+        step = cfg.slot_step_s
+        count = math.floor(cfg.t_free_s / step + 1e-9)
+        for i in range(count + 1):
+            target = t_fast + i * step
+            plan = self._meet(tr, entry, env_after, cap, length, target)
+            if plan is None:
+                break
+            if not table.conflicts(vehicle, plan.points, now, cfg.t_free_s, exclude):
+                return plan
+        return self._stop(tr, "slot_fallback")
+
+    def _cruise(self, tr: _Track, entry: int, env_after: FloatArray, v_c: float) -> FloatArray:
+        """Speeds: reach ``v_c`` (braking or accelerating), hold it to the zone entry, then go."""
+        cfg = self.config
+        s = tr.s
+        v0 = tr.v0
+        if v_c <= v0:
+            w = np.maximum(np.maximum(v0 * v0 - 2.0 * cfg.decel_comfort_mps2 * s, 0.0), v_c * v_c)
+        else:
+            w = np.minimum(v0 * v0 + 2.0 * cfg.accel_mps2 * s, v_c * v_c)
+        we = float(w[entry])
+        after = np.minimum(we + 2.0 * cfg.accel_mps2 * (s - s[entry]), np.maximum(env_after, 0.0))
+        w = np.where(np.arange(s.shape[0]) <= entry, w, after)
+        return np.sqrt(np.maximum(w, 0.0))
+
+    def _entry_times(self, tr: _Track, entry: int, v_cs: FloatArray) -> FloatArray:
+        """Time to the zone entry for each cruise speed in ``v_cs`` (vectorised)."""
+        cfg = self.config
+        s = tr.s[: entry + 1][None, :]
+        d = tr.d[: entry + 1][None, :]
+        v0 = tr.v0
+        vc = v_cs[:, None]
+        dec = np.maximum(np.maximum(v0 * v0 - 2.0 * cfg.decel_comfort_mps2 * s, 0.0), vc * vc)
+        acc = np.minimum(v0 * v0 + 2.0 * cfg.accel_mps2 * s, vc * vc)
+        v = np.sqrt(np.where(vc <= v0, dec, acc))
+        mean = 0.5 * (v[:, :-1] + v[:, 1:])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            dt = np.where(d[:, 1:] <= 0.0, 0.0, d[:, 1:] / mean)
+        times: FloatArray = dt.sum(axis=1)
+        return times
+
+    def _meet(
+        self,
+        tr: _Track,
+        entry: int,
+        env_after: FloatArray,
+        cap: FloatArray,
+        length: float,
+        target: float,
+    ) -> SpeedPlan | None:
+        """Fastest profile entering the zone no earlier than ``target``; None if impossible."""
+        cfg = self.config
+        need = target - tr.t0
+        lo, hi = cfg.slot_min_speed_mps, cfg.v_max_mps
+        t_lo, t_hi = self._entry_times(tr, entry, np.array([lo, hi]))
+        if t_hi >= need - 1e-9:
+            v = self._cruise(tr, entry, env_after, hi)
+            return self._plan_from(tr, v, cap, entry, tr.t0, "slot")
+        if t_lo >= need:
+            for _ in range(_VC_ROUNDS):
+                grid = np.linspace(lo, hi, _VC_GRID)
+                times = self._entry_times(tr, entry, grid)
+                ok = np.flatnonzero(times >= need)  # times decrease with the speed
+                best = int(ok[-1])
+                lo = float(grid[best])
+                hi = float(grid[min(best + 1, grid.shape[0] - 1)])
+            v = self._cruise(tr, entry, env_after, lo)
+            return self._plan_from(tr, v, cap, entry, tr.t0, "slot")
+        return self._stop_and_go(tr, entry, env_after, cap, length, target)
+
+    def _plan_from(
+        self, tr: _Track, v: FloatArray, targets: FloatArray, entry: int, t0: float, kind: str
+    ) -> SpeedPlan:
+        cfg = self.config
+        speeds = np.where(np.arange(v.shape[0]) <= entry, v, np.minimum(targets, cfg.v_max_mps))
+        pts, sp = _finish(tr.xy, tr.d, v, speeds, t0, tr.t_end, cfg.hold_step_s)
+        entry_time = float(pts[entry, 2]) if entry < pts.shape[0] else math.inf
+        return SpeedPlan(pts, sp, kind, entry_time)
+
+    def _stop_and_go(
+        self,
+        tr: _Track,
+        entry: int,
+        env_after: FloatArray,
+        cap: FloatArray,
+        length: float,
+        target: float,
+    ) -> SpeedPlan | None:
+        """Stop ``stop_gap_m`` before the zone, wait, start so as to enter at ``target``.
+
+        None when the car can no longer stop comfortably before the zone.
+        """
+        cfg = self.config
+        a, b = cfg.accel_mps2, cfg.decel_comfort_mps2
+        s = tr.s
+        k = int(np.searchsorted(s, s[entry] - (length / 2.0 + cfg.stop_gap_m), side="right")) - 1
+        if k < 0 or tr.v0 * tr.v0 > 2.0 * b * s[k] + 1e-6:
+            return None
+        idx = np.arange(s.shape[0])
+        w_before = np.minimum(
+            np.minimum(tr.v0 * tr.v0 + 2.0 * a * s, 2.0 * b * np.maximum(s[k] - s, 0.0)),
+            cfg.v_max_mps**2,
+        )
+        w_after = np.minimum(2.0 * a * np.maximum(s - s[k], 0.0), env_after)
+        v = np.sqrt(np.maximum(np.where(idx <= k, w_before, w_after), 0.0))
+        v[0] = tr.v0
+        v[k] = 0.0
+        dt = _segment_times(tr.d, v)
+        if not np.all(np.isfinite(dt)):
+            return None
+        t_before = tr.t0 + np.cumsum(dt[: k + 1])
+        t_stop = float(t_before[-1])
+        t_go = max(t_stop, target - float(dt[k + 1 : entry + 1].sum()))
+        hold = _holds(float(tr.xy[k, 0]), float(tr.xy[k, 1]), t_stop, t_go, cfg.hold_step_s)
+        t_after = t_go + np.cumsum(dt[k + 1 :])
+        targets = np.where(idx <= entry, v, np.minimum(cap, cfg.v_max_mps))
+        pts = np.vstack(
+            [
+                np.column_stack([tr.xy[: k + 1], t_before]),
+                hold,
+                np.column_stack([tr.xy[k + 1 :], t_after]),
+            ]
+        )
+        speeds = np.concatenate([targets[: k + 1], np.zeros(hold.shape[0]), targets[k + 1 :]])
+        if k + 1 < s.shape[0] and v[-1] <= 0.0:
+            tail = _holds(
+                float(pts[-1, 0]), float(pts[-1, 1]), float(pts[-1, 2]), tr.t_end, cfg.hold_step_s
+            )
+            pts = np.vstack([pts, tail])
+            speeds = np.concatenate([speeds, np.zeros(tail.shape[0])])
+        entry_time = t_go + float(dt[k + 1 : entry + 1].sum())
+        return SpeedPlan(pts, speeds, "slot_stop", entry_time)

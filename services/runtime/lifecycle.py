@@ -1,0 +1,150 @@
+"""Run a daemon from start to exit, stopping gracefully on SIGTERM / SIGINT (as uvicorn does).
+
+A daemon is a :class:`Service`: ``startup()`` opens what it needs (Zenoh session,
+subscriptions), ``run(stop)`` does the work until ``stop`` is set, and
+``shutdown()`` closes everything. :func:`serve` drives the three:
+
+- the first SIGTERM or SIGINT sets ``stop``; ``run`` returns, ``shutdown`` runs,
+  exit code 0;
+- a second signal forces: the current step (``startup``, ``run`` or ``shutdown``)
+  is cancelled, a best-effort ``shutdown`` gets ``force_timeout`` seconds (unless
+  the forced step was ``shutdown`` itself), exit code 1;
+- ``startup`` or ``run`` raising, or ``shutdown`` raising or overrunning
+  ``shutdown_timeout``, also gives exit code 1 (logged).
+
+``run`` may also return on its own (the run is over): that is a normal exit, 0.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import signal
+from collections.abc import Awaitable, Coroutine
+from typing import Any, Protocol
+
+logger = logging.getLogger("crosspath.lifecycle")
+
+EXIT_OK = 0
+EXIT_FAILED = 1
+
+STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT)
+
+
+class Service(Protocol):
+    """What :func:`serve` runs."""
+
+    async def startup(self) -> None:
+        """Acquire resources; raise to abort (shutdown still runs, best effort)."""
+
+    async def run(self, stop: asyncio.Event) -> None:
+        """Work until ``stop`` is set (or the job is done), then return."""
+
+    async def shutdown(self) -> None:
+        """Release everything ``startup`` acquired; must tolerate a partial startup."""
+
+
+class _Supervisor:
+    """Signal bookkeeping of one :func:`serve` call."""
+
+    def __init__(self, stop: asyncio.Event) -> None:
+        self.stop = stop
+        self.signals = 0
+        self.forced = False
+        self.current: asyncio.Task[Any] | None = None
+
+    def on_signal(self, signum: int) -> None:
+        self.signals += 1
+        name = signal.Signals(signum).name
+        if self.signals == 1:
+            logger.info("%s received: stopping (send it again to force)", name)
+            self.stop.set()
+            return
+        logger.warning("%s received again: forcing exit", name)
+        self.stop.set()
+        self.forced = True
+        if self.current is not None and not self.current.done():
+            self.current.cancel()
+
+    async def step(self, coro: Coroutine[Any, Any, None]) -> None:
+        """Run one step as a task the second signal can cancel."""
+        task = asyncio.ensure_future(coro)
+        self.current = task
+        try:
+            await task
+        finally:
+            self.current = None
+
+
+async def _bounded(awaitable: Awaitable[None], timeout: float) -> None:
+    await asyncio.wait_for(awaitable, timeout)
+
+
+async def serve(
+    service: Service,
+    *,
+    install_signals: bool = True,
+    stop: asyncio.Event | None = None,
+    shutdown_timeout: float = 10.0,
+    force_timeout: float = 2.0,
+) -> int:
+    """Run ``service`` through startup, run and shutdown; return the exit code.
+
+    ``stop`` may be given to stop the service from elsewhere (e.g. a launcher
+    running several services in one loop); signal handlers are installed only
+    when ``install_signals`` (main thread, Unix) and removed on return.
+    """
+    supervisor = _Supervisor(asyncio.Event() if stop is None else stop)
+    loop = asyncio.get_running_loop()
+    installed: list[signal.Signals] = []
+    if install_signals:
+        for signum in STOP_SIGNALS:
+            loop.add_signal_handler(signum, supervisor.on_signal, signum)
+            installed.append(signum)
+    code = EXIT_OK
+    try:
+        try:
+            await supervisor.step(service.startup())
+            await supervisor.step(service.run(supervisor.stop))
+        except asyncio.CancelledError:
+            if not supervisor.forced:
+                raise
+            code = EXIT_FAILED
+        except Exception:
+            logger.exception("service failed")
+            code = EXIT_FAILED
+        timeout = force_timeout if supervisor.forced else shutdown_timeout
+        try:
+            await supervisor.step(_bounded(service.shutdown(), timeout))
+        except asyncio.CancelledError:
+            if not supervisor.forced:
+                raise
+            logger.warning("shutdown cancelled")
+            code = EXIT_FAILED
+        except TimeoutError:
+            logger.error("shutdown did not finish within %.1f s", timeout)
+            code = EXIT_FAILED
+        except Exception:
+            logger.exception("shutdown failed")
+            code = EXIT_FAILED
+        if supervisor.forced:
+            code = EXIT_FAILED
+    finally:
+        for signum in installed:
+            with contextlib.suppress(Exception):
+                loop.remove_signal_handler(signum)
+    return code
+
+
+def run_service(service: Service, use_uvloop: bool = True) -> int:
+    """Run ``service`` in a fresh event loop (uvloop when available and asked for)."""
+    if use_uvloop:
+        try:
+            import uvloop
+        except ImportError:  # pragma: no cover - uvloop is a dependency
+            logger.debug("uvloop not available, using asyncio's loop")
+        else:
+            result: int = uvloop.run(serve(service))
+            return result
+    return asyncio.run(serve(service))

@@ -1,0 +1,291 @@
+"""The car's autonomy stack as one pure object: planner + future path + coordinated mode.
+
+``VehicleAgent`` is sans-IO: the harness (in-process simulation or the vehicle
+daemon) passes ``now`` and inputs in and sends what comes out:
+
+- ``on_message(now, message, rsu)``: a received future path of another car, a
+  mode command or coordinated path from an RSU, or an RSU beacon;
+- ``tick(now, ego, sensed)`` at the planning rate (10 Hz): plans, and returns
+  the messages to send (the future path broadcast and, while coordinated, the
+  autonomous path to the RSU) and the next deadline;
+- ``command(body)`` at the physics rate (20 Hz): the acceleration command that
+  tracks the last planned speed profile (the controller).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from protocol.keys import Stream
+from protocol.messages import (
+    AutonomousPath,
+    Command,
+    CoordinatedPath,
+    FuturePath,
+    Header,
+    Message,
+    Mode,
+    ModeCommand,
+    RsuBeacon,
+)
+from services.vehicle.coordination import Event, next_mode
+from services.vehicle.future_path import future_path_points
+from services.vehicle.planner import AutonomousPlanner, Coordination, Plan, Reason
+from services.vehicle.profile import FloatArray
+from services.world.kinematics import BodyState, Limits, TruthState
+from services.world.scenario import Scenario
+
+log = logging.getLogger("crosspath.vehicle")
+
+CONTROL_LOOKAHEAD_S = 0.3
+"""The controller tracks the planned speed this far ahead (≈ the actuator lag) [s]."""
+
+CONTROL_TIME_CONSTANT_S = 0.4
+"""Speed error → acceleration command gain is 1 / this [1/s]."""
+
+FP_STALE_S = 0.5
+"""Received future paths older than this are forgotten [s] (as the RSU's table)."""
+
+
+@dataclass(frozen=True, slots=True)
+class VehicleSpec:
+    """One car of a scenario: what its agent needs to know about itself."""
+
+    vehicle_id: str
+    route_id: str
+    goal_s: float
+    length: float
+    width: float
+    limits: Limits
+
+
+@dataclass(frozen=True, slots=True)
+class Outbound:
+    """A message the car sends: the future path broadcast, or an autonomous path to an RSU."""
+
+    stream: Stream
+    message: FuturePath | AutonomousPath
+    rsu: str | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class TickResult:
+    plan: Plan
+    outbound: list[Outbound]
+    mode: Mode
+    next_deadline: float
+
+
+@dataclass(slots=True)
+class _Coordinated:
+    mode: Mode = Mode.AUTO
+    rsu: str | None = None
+    since: float = 0.0
+    last_path_at: float = -np.inf
+    target_s: FloatArray | None = None
+    target_v: FloatArray | None = None
+
+
+@dataclass(slots=True)
+class VehicleAgent:
+    """Planner, future-path sender and coordinated mode of one car."""
+
+    spec: VehicleSpec
+    scenario: Scenario
+    v2x: bool = True
+    planner: AutonomousPlanner = field(init=False)
+    coordination: _Coordinated = field(init=False)
+    future_paths: dict[str, tuple[FuturePath, float]] = field(init=False)
+    rsus: dict[str, tuple[RsuBeacon, float]] = field(init=False)
+    last_plan: Plan | None = field(init=False, default=None)
+    seq: int = field(init=False, default=0)
+    counters: dict[str, int] = field(init=False)
+
+    def __post_init__(self) -> None:
+        p = self.scenario.params
+        self.planner = AutonomousPlanner(
+            vehicle_id=self.spec.vehicle_id,
+            scenario=self.scenario,
+            route_id=self.spec.route_id,
+            goal_s=self.spec.goal_s,
+            length=self.spec.length,
+            width=self.spec.width,
+            limits=self.spec.limits,
+            headway_s=p.headway_s,
+            sensor_range_m=p.sensor_range_m,
+        )
+        self.coordination = _Coordinated()
+        self.future_paths = {}
+        self.rsus = {}
+        self.counters = {}
+
+    @property
+    def mode(self) -> Mode:
+        return self.coordination.mode
+
+    def _count(self, name: str) -> None:
+        self.counters[name] = self.counters.get(name, 0) + 1
+
+    # ------------------------------------------------------------------ input
+    def on_message(self, now: float, message: Message, rsu: str | None = None) -> None:
+        """Take one received, decoded message. Never raises on odd but valid input."""
+        if not self.v2x:
+            return
+        me = self.spec.vehicle_id
+        if isinstance(message, FuturePath):
+            if message.header.sender != me:
+                prev = self.future_paths.get(message.header.sender)
+                if (
+                    prev is None
+                    or message.header.seq > prev[0].header.seq
+                    or (message.header.time_us > prev[0].header.time_us)
+                ):
+                    self.future_paths[message.header.sender] = (message, now)
+            return
+        if isinstance(message, RsuBeacon):
+            self.rsus[message.header.sender] = (message, now)
+            return
+        if isinstance(message, ModeCommand):
+            if message.vehicle != me:
+                self._count("cmd_not_mine")
+                return
+            if message.command is Command.TERMINATE:
+                event = Event.TERMINATE
+            elif message.mode is Mode.C_SLOW:
+                event = Event.INITIATE_SLOW
+            else:
+                event = Event.INITIATE_FAST
+            self._apply(now, event, rsu or message.header.sender)
+            return
+        if isinstance(message, CoordinatedPath):
+            if message.vehicle != me:
+                self._count("cp_not_mine")
+                return
+            c = self.coordination
+            if c.mode is Mode.AUTO:
+                self._count("cp_ignored")
+                return
+            if message.mode is not c.mode and message.mode in (Mode.C_SLOW, Mode.C_FAST):
+                # the path implies its mode: a lost initiation is recovered from it
+                self._apply(
+                    now,
+                    Event.INITIATE_SLOW if message.mode is Mode.C_SLOW else Event.INITIATE_FAST,
+                    rsu or message.header.sender,
+                )
+            self._follow(now, message)
+            return
+        self._count("ignored")
+
+    def _apply(self, now: float, event: Event, rsu: str | None) -> None:
+        c = self.coordination
+        new = next_mode(c.mode, event)
+        if new is not c.mode:
+            log.info("%s: %s -> %s (%s)", self.spec.vehicle_id, c.mode.name, new.name, event.value)
+            self._count(f"mode_{new.name.lower()}")
+            if c.mode is Mode.AUTO:
+                c.since = now
+                c.last_path_at = now  # the timeout counts from the initiation
+                c.target_s = c.target_v = None
+            c.mode = new
+            c.rsu = rsu if new is not Mode.AUTO else None
+            if new is Mode.AUTO:
+                c.target_s = c.target_v = None
+
+    def _follow(self, now: float, path: CoordinatedPath) -> None:
+        c = self.coordination
+        pts = path.points
+        if pts.shape[0] == 0:
+            return
+        s, _lat = self.planner.route.project_many(np.ascontiguousarray(pts[:, 0:2]))
+        order = np.argsort(s, kind="stable")
+        c.target_s = np.asarray(s[order], dtype=np.float64)
+        c.target_v = np.asarray(path.speeds[order], dtype=np.float64)
+        c.last_path_at = now
+        self._count("cp_followed")
+
+    # ------------------------------------------------------------------ planning step
+    def tick(self, now: float, ego: TruthState, sensed: list[TruthState]) -> TickResult:
+        """One planning step (10 Hz)."""
+        p = self.scenario.params
+        c = self.coordination
+        if c.mode is not Mode.AUTO and now - c.last_path_at > p.coordinated_timeout_s:
+            log.info(
+                "%s: no coordinated path for %.2f s, back to AUTO",
+                self.spec.vehicle_id,
+                now - c.last_path_at,
+            )
+            self._count("coordinated_timeout")
+            self._apply(now, Event.TIMEOUT, None)
+        fps = {vid: fp for vid, (fp, rx) in self.future_paths.items() if now - rx <= FP_STALE_S}
+        for vid in [v for v in self.future_paths if v not in fps]:
+            del self.future_paths[vid]
+        autonomous = self.planner.plan(now, ego, sensed, fps)
+        if c.mode is Mode.AUTO:
+            plan = autonomous
+        else:
+            coordination = Coordination(
+                lift_caution=c.mode is Mode.C_FAST,
+                target_s=c.target_s,
+                target_v=c.target_v,
+                skip_yield=c.target_v is not None,
+            )
+            plan = self.planner.plan(now, ego, sensed, fps, coordination)
+            if plan.reason in (Reason.CRUISE,) and c.target_v is not None:
+                plan = Plan(
+                    plan.profile, Reason.COORDINATED, c.mode.name, plan.unyielded, plan.yielding_to
+                )
+        self.last_plan = plan
+        out: list[Outbound] = []
+        if self.v2x:
+            out.append(Outbound(Stream.FP, self._path_message(FuturePath, now, ego, plan)))
+            if c.mode is not Mode.AUTO and c.rsu is not None:
+                out.append(
+                    Outbound(
+                        Stream.AP, self._path_message(AutonomousPath, now, ego, autonomous), c.rsu
+                    )
+                )
+        return TickResult(plan, out, c.mode, now + 1.0 / p.planning_hz)
+
+    def _path_message(
+        self,
+        cls: type[FuturePath] | type[AutonomousPath],
+        now: float,
+        ego: TruthState,
+        plan: Plan,
+    ) -> FuturePath | AutonomousPath:
+        p = self.scenario.params
+        pts = future_path_points(
+            plan.profile, self.planner.route, now, p.t_free_s, p.future_path_points
+        )
+        self.seq = (self.seq + 1) & 0xFFFFFFFF
+        return cls(
+            header=Header(sender=self.spec.vehicle_id, seq=self.seq, time_us=round(now * 1e6)),
+            x=ego.x,
+            y=ego.y,
+            speed=ego.speed,
+            heading=ego.heading,
+            length=self.spec.length,
+            width=self.spec.width,
+            mode=self.coordination.mode,
+            points=pts,
+        )
+
+    # ------------------------------------------------------------------ control
+    def command(self, body: BodyState) -> float:
+        """Acceleration command [m/s²] tracking the last plan (20 Hz)."""
+        plan = self.last_plan
+        if plan is None:
+            return -self.spec.limits.decel_comfort
+        prof = plan.profile
+        look = body.s + max(body.v, 0.5) * CONTROL_LOOKAHEAD_S
+        v_ref = prof.speed_at(look)
+        if prof.speed_at(body.s) <= 1e-3 and v_ref <= 1e-3:
+            return -self.spec.limits.decel_emergency if body.v > 0.0 else 0.0
+        # feedforward: the profile's own acceleration at the look-ahead point, a = d(v²)/ds / 2
+        step = 0.5
+        v_next = prof.speed_at(look + step)
+        a_ff = (v_next * v_next - v_ref * v_ref) / (2.0 * step)
+        return a_ff + (v_ref - body.v) / CONTROL_TIME_CONSTANT_S

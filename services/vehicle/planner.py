@@ -1,0 +1,507 @@
+"""The autonomous planner: the Autoware stand-in (DESIGN.md, "The vehicle").
+
+Pure: ``plan(now, ego, sensed, future_paths, coordination)`` returns a speed
+profile along the car's route and the reason its speed is capped. Rules, in
+the order DESIGN.md gives them:
+
+1. cruise at V_max, stop at the goal;
+2. blind-corner caution: approaching an intersection whose crossing lanes are
+   hidden, keep a speed from which the car can stop at the stop line braking
+   comfortably, until the visible stretch of every crossing lane is long
+   enough that an unseen car at V_max could not reach the conflict zone
+   before this car has cleared it (lifted in ``C_FAST``);
+3. yield: for every known other car, from sensors or from a received future
+   path, compare conflict-zone occupancy intervals with a 1.0 s headway; the
+   car that would arrive later yields (ties within ``TIE_S``: lower id goes
+   first) and plans a stop at the stop line until the interval has passed;
+4. emergency braking for any sensed car on the path, in every mode.
+
+Our interpretation where DESIGN.md is silent (also in the README):
+
+- Occupancy intervals [t_in, t_out] cover the car's footprint in the zone
+  (centre within the zone grown by half a car length).
+- Against a car known from its future path, this car's own interval comes
+  from its plan without yield stops, and the other's from its future path:
+  both cars compare the same two plans. A future path that stops short of the
+  zone (the other car is waiting or creeping) counts as its *earliest
+  possible* arrival (driving off at the limits from its current speed), and
+  then so does this car's own.
+- Against a car known only from the sensors, both sides use the earliest
+  possible arrival along their lanes, rather than DESIGN.md's constant-velocity
+  prediction: constant velocity calls a slow, accelerating car far off, and
+  the two cars, each predicting the other at constant velocity and itself by
+  its plan, then both believe they are first. With the earliest arrival both
+  compute the same numbers from the same facts and agree on who goes first.
+- A yield can only be planned while the car can still stop before the stop
+  line with emergency deceleration; past that point it is committed.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from enum import StrEnum
+
+import numpy as np
+
+from protocol.messages import FuturePath
+from services.vehicle.profile import (
+    FloatArray,
+    SpeedProfile,
+    backward_pass,
+    earliest_arrival,
+    forward_pass,
+    grid,
+    pass_times,
+    stop_cap,
+    track_envelope,
+)
+from services.world.geometry import Polyline, footprint, visible_mask
+from services.world.kinematics import Limits, TruthState
+from services.world.scenario import Crossing, Scenario
+
+DS = 0.5
+"""Arc-length step of the speed profile [m]."""
+
+LOOKAHEAD_M = 220.0
+"""How far ahead the planner looks [m] (≥ 10 s at V_max, plus stopping room)."""
+
+TIE_S = 0.3
+"""Arrival times closer than this are a tie, decided by id [s]."""
+
+STOP_MARGIN_M = 0.3
+"""Planned stops aim this far before the line, for the actuator lag [m]."""
+
+CAUTION_SAMPLE_M = 1.0
+"""Spacing of the points sampled along crossing lanes for visibility [m]."""
+
+CREEP_MPS = 1.5
+"""Under caution, past the stop line the car creeps this fast at most, to see [m/s]."""
+
+CREEP_MARGIN_M = 0.5
+"""Creeping stops this far before the conflict zone [m]."""
+
+EMERGENCY_GAP_M = 1.5
+"""Gap kept to a sensed car on the path when braking for it [m]."""
+
+STOPPED_MPS = 0.5
+"""Below this speed a sensed car counts as stopped for prediction [m/s]."""
+
+
+class Reason(StrEnum):
+    """Why the planned speed is what it is (recorded every planning step)."""
+
+    CRUISE = "cruise"
+    GOAL = "goal"
+    CAUTION = "caution"
+    YIELD = "yield"
+    EMERGENCY = "emergency"
+    COORDINATED = "coordinated"
+    WAITING = "waiting"  # not started yet
+
+
+_PRIORITY = (
+    Reason.CRUISE,
+    Reason.GOAL,
+    Reason.COORDINATED,
+    Reason.CAUTION,
+    Reason.YIELD,
+    Reason.EMERGENCY,
+)
+"""When several constraints bind equally, the reason reported is the most specific."""
+
+
+@dataclass(frozen=True, slots=True)
+class Interval:
+    """Conflict-zone occupancy of one car [s, run time]."""
+
+    t_in: float
+    t_out: float
+
+    def overlaps(self, other: Interval, headway: float) -> bool:
+        return self.t_in < other.t_out + headway and other.t_in < self.t_out + headway
+
+
+@dataclass(frozen=True, slots=True)
+class Plan:
+    """One planning step's result."""
+
+    profile: SpeedProfile
+    reason: Reason
+    detail: str = ""  # e.g. the id yielded to
+    unyielded: SpeedProfile | None = None  # plan without yield stops (for the autonomous path)
+    yielding_to: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True, slots=True)
+class Coordination:
+    """What the coordinated mode imposes on the planner this step."""
+
+    lift_caution: bool = False
+    target_s: FloatArray | None = None  # coordinated target speeds by route arc length
+    target_v: FloatArray | None = None
+    skip_yield: bool = False
+
+
+@dataclass(slots=True)
+class _Constraint:
+    reason: Reason
+    cap: FloatArray
+    detail: str = ""
+
+
+@dataclass(slots=True)
+class AutonomousPlanner:
+    """Speed planning along one route. Keeps only the previous step's yield decisions."""
+
+    vehicle_id: str
+    scenario: Scenario
+    route_id: str
+    goal_s: float
+    length: float
+    width: float
+    limits: Limits
+    headway_s: float
+    sensor_range_m: float
+    route: Polyline = field(init=False)
+    crossings: list[Crossing] = field(init=False)
+    _zones: dict[str, FloatArray] = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.route = self.scenario.route(self.route_id)
+        self.crossings = self.scenario.crossings(self.route_id, self.length)
+        self._zones = {i.id: self.scenario.zone_polygon(i.id) for i in self.scenario.intersections}
+
+    # ------------------------------------------------------------------ planning
+    def plan(
+        self,
+        now: float,
+        ego: TruthState,
+        sensed: Sequence[TruthState],
+        future_paths: Mapping[str, FuturePath],
+        coordination: Coordination | None = None,
+    ) -> Plan:
+        """Plan the speed profile from the ego state (``ego.s`` on this route)."""
+        coordination = coordination or Coordination()
+        lim = self.limits
+        s0 = ego.s
+        v0 = ego.speed
+        s = grid(s0, min(self.goal_s, s0 + LOOKAHEAD_M) + DS, DS)
+        base = np.full_like(s, lim.v_max)
+        constraints: list[_Constraint] = [_Constraint(Reason.CRUISE, base)]
+        constraints.append(_Constraint(Reason.GOAL, stop_cap(s, self.goal_s, lim.decel_comfort)))
+        if coordination.target_v is not None and coordination.target_s is not None:
+            target = np.interp(s, coordination.target_s, coordination.target_v)
+            env = track_envelope(target, v0, DS, lim.accel, lim.decel_comfort)
+            constraints.append(_Constraint(Reason.COORDINATED, np.maximum(env, 0.0)))
+        for crossing in self._crossings_ahead(s0):
+            if not coordination.lift_caution and not self._clear_view(now, ego, crossing):
+                cap = self._stop_line_cap(s, s0, v0, crossing)
+                if cap is not None:
+                    # creep past the line towards the zone, to see round the corner
+                    edge = crossing.s_in - self.length / 2.0 - CREEP_MARGIN_M
+                    creep = np.minimum(CREEP_MPS, stop_cap(s, edge, lim.decel_comfort))
+                    constraints.append(
+                        _Constraint(Reason.CAUTION, np.maximum(cap, creep), crossing.intersection)
+                    )
+        emergency = self._emergency_caps(s, ego, sensed)
+        constraints.extend(emergency)
+
+        unyielded = self._combine(now, s, v0, constraints)
+        yield_to: list[str] = []
+        if not coordination.skip_yield:
+            for crossing in self._crossings_ahead(s0):
+                others = self._yield_targets(
+                    now, ego, crossing, unyielded.profile, sensed, future_paths
+                )
+                if others:
+                    cap = self._stop_line_cap(s, s0, v0, crossing)
+                    if cap is not None:
+                        constraints.append(_Constraint(Reason.YIELD, cap, ",".join(others)))
+                        yield_to.extend(others)
+        if not yield_to:
+            return Plan(
+                unyielded.profile, unyielded.reason, unyielded.detail, unyielded.profile, ()
+            )
+        final = self._combine(now, s, v0, constraints)
+        return Plan(final.profile, final.reason, final.detail, unyielded.profile, tuple(yield_to))
+
+    def _combine(
+        self, now: float, s: FloatArray, v0: float, constraints: list[_Constraint]
+    ) -> Plan:
+        lim = self.limits
+        shaped = [backward_pass(c.cap, DS, lim.decel_emergency) for c in constraints]
+        cap = np.minimum.reduce(shaped)
+        v = forward_pass(cap, v0, DS, lim.accel)
+        # the binding constraint: the lowest cap around where the car will be in ~1 s
+        look = min(int((max(v0, 1.0) * 1.0) / DS), s.shape[0] - 1)
+        values = [float(c[look]) for c in shaped]
+        low = min(values)
+        k = max(
+            (i for i, val in enumerate(values) if val <= low + 1e-6),
+            key=lambda i: _PRIORITY.index(constraints[i].reason),
+        )
+        reason = constraints[k].reason
+        if reason is Reason.CRUISE or values[k] >= lim.v_max - 1e-6:
+            reason, detail = Reason.CRUISE, ""
+        else:
+            detail = constraints[k].detail
+        profile = SpeedProfile(s=s, v=v, t=pass_times(s, v, now))
+        return Plan(profile, reason, detail)
+
+    # ------------------------------------------------------------------ rules
+    def _crossings_ahead(self, s0: float) -> Iterable[Crossing]:
+        """Crossings whose zone the car's rear has not yet left."""
+        for c in self.crossings:
+            if s0 - self.length / 2.0 < c.s_out:
+                yield c
+
+    def _stop_line_cap(
+        self, s: FloatArray, s0: float, v0: float, crossing: Crossing
+    ) -> FloatArray | None:
+        """Cap for stopping at the stop line, or None if the car is committed.
+
+        Braking comfortably when it can, harder when it must; if even emergency
+        braking cannot stop it at the line, it stops short of the conflict zone
+        instead; if it cannot do that either, it is committed and goes on.
+        """
+        lim = self.limits
+        for s_stop in (crossing.s_stop - STOP_MARGIN_M, crossing.s_in - self.length / 2.0 - 0.3):
+            room = s_stop - s0
+            if room < -0.3:
+                continue  # already past this point
+            needed = v0 * v0 / (2.0 * max(room, 1e-3))
+            if needed > lim.decel_emergency:
+                continue
+            decel = (
+                lim.decel_comfort
+                if needed <= lim.decel_comfort
+                else min(needed * 1.1, lim.decel_emergency)
+            )
+            return stop_cap(s, max(s_stop, s0), decel)
+        return None
+
+    def _clear_view(self, now: float, ego: TruthState, crossing: Crossing) -> bool:
+        """Blind-corner rule: can every crossing lane be seen far enough upstream?"""
+        if ego.s > crossing.s_stop + 0.5:
+            return True  # past the stop line: caution no longer helps
+        lim = self.limits
+        # time for this car to clear the zone (rear out), driving off at the limit from now
+        to_clear = crossing.s_out + self.length / 2.0 - ego.s
+        t_clear = earliest_arrival(to_clear, ego.speed, lim.accel, lim.v_max)
+        needed = lim.v_max * t_clear
+        buildings = self.scenario.building_polygons
+        for lane in self.scenario.crossing_lanes(self.route_id, crossing.intersection):
+            # points along the lane upstream of its zone entry, out to the needed distance
+            d = np.arange(0.0, needed + CAUTION_SAMPLE_M, CAUTION_SAMPLE_M)
+            s_lane = lane.s_in - d
+            inside = s_lane >= 0.0
+            if not np.any(inside):
+                continue
+            pts = lane.polyline.points_at(s_lane[inside])
+            dist = np.hypot(pts[:, 0] - ego.x, pts[:, 1] - ego.y)
+            ok = (dist <= self.sensor_range_m) & visible_mask((ego.x, ego.y), pts, buildings)
+            if not bool(np.all(ok)):
+                return False
+        return True
+
+    def _emergency_caps(
+        self, s: FloatArray, ego: TruthState, sensed: Sequence[TruthState]
+    ) -> list[_Constraint]:
+        """Brake (up to the emergency limit) for any sensed car whose footprint is on the path."""
+        out: list[_Constraint] = []
+        lim = self.limits
+        half_w = self.width / 2.0 + 0.3
+        for other in sensed:
+            corners = footprint(other.x, other.y, other.heading, other.length, other.width)
+            cs, lat = self.route.project_many(corners)
+            on_path = (np.abs(lat) <= half_w) & (cs > ego.s)
+            if not bool(np.any(on_path)):
+                # also a car crossing the path: corners on both sides of the route line
+                ahead = (cs > ego.s) & (cs < ego.s + 60.0)
+                if not (bool(np.any(ahead & (lat > 0))) and bool(np.any(ahead & (lat < 0)))):
+                    continue
+                s_obs = float(np.min(cs[ahead]))
+            else:
+                s_obs = float(np.min(cs[on_path]))
+            # a car moving the same way keeps going: allow its stopping distance
+            rel = float(np.cos(other.heading - self.route.heading_at(s_obs)))
+            extra = other.speed**2 / (2.0 * lim.decel_emergency) if rel > 0.7 else 0.0
+            s_stop = s_obs + extra - self.length / 2.0 - EMERGENCY_GAP_M
+            if s_stop - ego.s > 60.0:
+                continue
+            out.append(
+                _Constraint(
+                    Reason.EMERGENCY, stop_cap(s, max(s_stop, ego.s), lim.decel_emergency), other.id
+                )
+            )
+        return out
+
+    # ------------------------------------------------------------------ yield
+    def _own_interval(
+        self, now: float, ego: TruthState, crossing: Crossing, profile: SpeedProfile
+    ) -> Interval | None:
+        """This car's occupancy by its plan without yield stops; None if it stops short."""
+        half = self.length / 2.0
+        if crossing.s_in - half > profile.s[-1]:
+            return None
+        finite = np.isfinite(profile.t)
+        s_fin = profile.s[finite]
+        if s_fin[-1] < crossing.s_in - half:
+            return None
+        t_in = float(np.interp(crossing.s_in - half, s_fin, profile.t[finite]))
+        if s_fin[-1] < crossing.s_out + half:
+            return Interval(t_in, np.inf)
+        return Interval(t_in, float(np.interp(crossing.s_out + half, s_fin, profile.t[finite])))
+
+    def _earliest_interval(
+        self, now: float, s: float, v: float, crossing: Crossing, length: float
+    ) -> Interval:
+        """Occupancy if the car drove off at the limits from (s, v): the earliest possible."""
+        lim = self.limits
+        half = length / 2.0
+        t_in = now + earliest_arrival(crossing.s_in - half - s, v, lim.accel, lim.v_max)
+        t_out = now + earliest_arrival(crossing.s_out + half - s, v, lim.accel, lim.v_max)
+        return Interval(t_in, t_out)
+
+    def _yield_targets(
+        self,
+        now: float,
+        ego: TruthState,
+        crossing: Crossing,
+        unyielded: SpeedProfile,
+        sensed: Sequence[TruthState],
+        future_paths: Mapping[str, FuturePath],
+    ) -> list[str]:
+        if ego.s - self.length / 2.0 > crossing.s_in:
+            return []  # already in the zone: go on
+        planned = self._own_interval(now, ego, crossing, unyielded)
+        earliest = self._earliest_interval(now, ego.s, ego.speed, crossing, self.length)
+        zone = self._zones[crossing.intersection]
+        out: list[str] = []
+        seen: set[str] = set()
+        for fp_id, fp in future_paths.items():
+            if fp_id == self.vehicle_id:
+                continue
+            seen.add(fp_id)
+            theirs = self._fp_interval(now, fp, zone, crossing)
+            if theirs is None:
+                continue
+            if planned is not None and theirs.planned:
+                mine, other_iv = planned, theirs.interval
+            else:
+                # one of the two stops short of the zone: both sides judge by earliest arrival
+                mine, other_iv = earliest, self._fp_earliest(now, fp, zone, crossing)
+            if self._should_yield(mine, other_iv, fp_id):
+                out.append(fp_id)
+        for other in sensed:
+            if other.id in seen:
+                continue
+            sensed_iv = self._sensed_interval(now, other, crossing)
+            if sensed_iv is not None and self._should_yield(earliest, sensed_iv, other.id):
+                out.append(other.id)
+        return out
+
+    def _should_yield(self, mine: Interval, theirs: Interval, other_id: str) -> bool:
+        if not mine.overlaps(theirs, self.headway_s):
+            return False
+        if mine.t_in > theirs.t_in + TIE_S:
+            return True
+        if abs(mine.t_in - theirs.t_in) <= TIE_S:
+            return other_id < self.vehicle_id
+        return False
+
+    def _fp_interval(
+        self, now: float, fp: FuturePath, zone: FloatArray, crossing: Crossing
+    ) -> _Known | None:
+        """Occupancy of the zone by a car known from its future path."""
+        pts = fp.points
+        if pts.shape[0] == 0:
+            return None
+        grown = _grow_box(zone, fp.length / 2.0)
+        inside = _in_box(pts[:, 0], pts[:, 1], grown)
+        here_inside = bool(_in_box(np.array([fp.x]), np.array([fp.y]), grown)[0])
+        if np.any(inside):
+            idx = np.flatnonzero(inside)
+            t_in = now if here_inside else float(pts[idx[0], 2])
+            t_out = np.inf if idx[-1] == pts.shape[0] - 1 else float(pts[idx[-1], 2])
+            return _Known(Interval(t_in, t_out), planned=True)
+        if here_inside:
+            return _Known(Interval(now, now + 1.0), planned=True)
+        # not entering within its horizon: waiting before the zone, far away, or gone
+        cx, cy = _box_center(zone)
+        d_now = float(np.hypot(fp.x - cx, fp.y - cy))
+        d_end = float(np.hypot(pts[-1, 0] - cx, pts[-1, 1] - cy))
+        if d_end > d_now + 0.5:
+            return None  # moving away: gone
+        if d_now > 40.0:
+            return None  # far away and not arriving within its horizon
+        return _Known(self._fp_earliest(now, fp, zone, crossing), planned=False)
+
+    def _fp_earliest(
+        self, now: float, fp: FuturePath, zone: FloatArray, crossing: Crossing
+    ) -> Interval:
+        """Earliest occupancy of a car known from its future path, from its current state."""
+        cx, cy = _box_center(zone)
+        radius = _box_radius(zone)
+        d_now = float(np.hypot(fp.x - cx, fp.y - cy))
+        dist = max(d_now - radius, 0.0)
+        virtual = Crossing(crossing.intersection, dist, dist + 2.0 * radius, 0.0, 0.0)
+        return self._earliest_interval(now, 0.0, fp.speed, virtual, fp.length)
+
+    def _sensed_interval(
+        self, now: float, other: TruthState, crossing: Crossing
+    ) -> Interval | None:
+        """Occupancy of the zone by a sensed car along its lane: the earliest it can be there.
+
+        Constant velocity would call a slow car far off; a car that can still
+        accelerate may arrive much sooner, and both cars must reach the same
+        verdict from the same facts, so both sides use the earliest arrival.
+        """
+        found = self.scenario.lane_of(other.x, other.y, other.heading)
+        if found is None:
+            return None
+        lane_id, s_other = found
+        lane_cross = [
+            c
+            for c in self.scenario.lane_crossings(lane_id, other.length)
+            if c.intersection == crossing.intersection
+        ]
+        if not lane_cross:
+            return None
+        c = lane_cross[0]
+        if s_other - other.length / 2.0 > c.s_out:
+            return None  # already through
+        return self._earliest_interval(now, s_other, other.speed, c, other.length)
+
+
+@dataclass(frozen=True, slots=True)
+class _Known:
+    """Another car's occupancy, and whether it comes from its plan (else: earliest arrival)."""
+
+    interval: Interval
+    planned: bool
+
+
+def _in_box(x: FloatArray, y: FloatArray, box: tuple[float, float, float, float]) -> FloatArray:
+    x0, y0, x1, y1 = box
+    return np.asarray((x >= x0) & (x <= x1) & (y >= y0) & (y <= y1))
+
+
+def _grow_box(zone: FloatArray, margin: float) -> tuple[float, float, float, float]:
+    """Axis-aligned bounding box of the zone grown by ``margin`` [m]."""
+    return (
+        float(zone[:, 0].min()) - margin,
+        float(zone[:, 1].min()) - margin,
+        float(zone[:, 0].max()) + margin,
+        float(zone[:, 1].max()) + margin,
+    )
+
+
+def _box_center(zone: FloatArray) -> tuple[float, float]:
+    return float(zone[:, 0].mean()), float(zone[:, 1].mean())
+
+
+def _box_radius(zone: FloatArray) -> float:
+    cx, cy = _box_center(zone)
+    return float(np.min(np.hypot(zone[:, 0] - cx, zone[:, 1] - cy)) / np.sqrt(2.0))

@@ -1,0 +1,202 @@
+"""Reservation table: the indexed conflict query agrees with brute force, expiry, updates."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from services.rsu.reservation import Conflict, ReservationTable
+
+D = 2.8
+H = 1.0
+
+
+def line(x0: float, y0: float, dx: float, dy: float, t0: float, n: int, dt: float) -> np.ndarray:
+    k = np.arange(n, dtype=np.float64)
+    return np.column_stack([x0 + dx * k, y0 + dy * k, t0 + dt * k])
+
+
+def test_crossing_paths_conflict_and_report_where_and_when() -> None:
+    table = ReservationTable(D, H, 0.5)
+    # A eastbound along y = 0, at x = 0 at t = 5; B northbound along x = 0, 0.5 s later.
+    a = line(-50.0, 0.0, 1.0, 0.0, 0.0, 101, 0.1)
+    b = line(0.0, -55.0, 0.0, 1.0, 0.0, 111, 0.1)
+    table.update("A", a, 0.0)
+    found = table.conflicts("B", b, 0.0, 10.0)
+    assert [c.vehicle for c in found] == ["A"]
+    c = found[0]
+    assert c == table.naive_conflicts("B", b, 0.0, 10.0)[0]
+    # B's first point within 2.8 m of a point of A less than 1 s apart: (0, -2) at 5.3 s,
+    # with A at x = -1, 0, 1 (4.9..5.1 s); A's earliest involved point: (-2, 0) at 4.8 s.
+    assert (c.x, c.y) == pytest.approx((0.0, -2.0))
+    assert c.self_time == pytest.approx(5.3)
+    assert c.other_time == pytest.approx(4.8)
+    assert c.time == pytest.approx(5.3)
+
+
+def test_no_conflict_when_far_apart_in_time_or_space() -> None:
+    table = ReservationTable(D, H, 0.5)
+    a = line(-50.0, 0.0, 1.0, 0.0, 0.0, 101, 0.1)
+    table.update("A", a, 0.0)
+    later = line(0.0, -50.0, 0.0, 1.0, 1.5, 101, 0.1)  # through (0, 0) at 6.5 s, A at 5 s
+    assert table.conflicts("B", later, 0.0, 10.0) == []
+    aside = line(20.0, -50.0, 0.0, 1.0, 0.0, 101, 0.1)  # crosses A's line 2 s before A
+    assert table.conflicts("C", aside, 0.0, 10.0) == []
+    parallel = line(-50.0, 2.9, 1.0, 0.0, 0.0, 101, 0.1)  # side by side, 2.9 m apart
+    assert table.conflicts("D", parallel, 0.0, 10.0) == []
+    alongside = line(-50.0, 2.8, 1.0, 0.0, 0.0, 101, 0.1)  # exactly d_margin apart: conflicts
+    assert [c.vehicle for c in table.conflicts("E", alongside, 0.0, 10.0)] == ["A"]
+
+
+def test_window_limits_the_query_and_the_entries() -> None:
+    table = ReservationTable(D, H, 0.5)
+    a = line(-50.0, 0.0, 1.0, 0.0, 0.0, 101, 0.1)  # at (0, 0) at 5 s
+    table.update("A", a, 0.0)
+    b = line(0.0, -50.0, 0.0, 1.0, 0.0, 101, 0.1)  # at (0, 0) at 5 s too
+    assert table.conflicts("B", b, 0.0, 4.0) == []
+    assert [c.vehicle for c in table.conflicts("B", b, 0.0, 5.0)] == ["A"]
+    assert table.conflicts("B", b, 0.0, 4.0) == table.naive_conflicts("B", b, 0.0, 4.0)
+
+
+def test_own_entry_and_excluded_cars_are_skipped() -> None:
+    table = ReservationTable(D, H, 0.5)
+    a = line(-50.0, 0.0, 1.0, 0.0, 0.0, 101, 0.1)
+    table.update("A", a, 0.0)
+    table.update("B", a + np.array([0.0, 1.0, 0.2]), 0.0)
+    assert [c.vehicle for c in table.conflicts("A", a, 0.0, 10.0)] == ["B"]
+    assert table.conflicts("A", a, 0.0, 10.0, exclude=("B",)) == []
+    assert [c.vehicle for c in table.conflicts("X", a, 0.0, 10.0)] == ["A", "B"]
+
+
+def test_expiry_drops_silent_entries_and_touch_keeps_them() -> None:
+    table = ReservationTable(D, H, 0.5)
+    a = line(-50.0, 0.0, 1.0, 0.0, 0.0, 101, 0.1)
+    table.update("A", a, 0.0)
+    table.update("B", a, 0.0)
+    assert table.next_expiry() == pytest.approx(0.5)
+    assert table.touch("B", 0.3)
+    assert not table.touch("nobody", 0.3)
+    assert table.expire(0.49) == []
+    # an entry past its expiry is no longer seen even before expire() runs
+    assert [c.vehicle for c in table.conflicts("X", a, 0.6, 10.0)] == ["B"]
+    assert table.expire(0.5) == ["A"]
+    assert "A" not in table and "B" in table and len(table) == 1
+    assert table.expire(0.8) == ["B"]
+    assert len(table) == 0 and table.next_expiry() == math.inf
+
+
+def test_update_replaces_and_remove_unindexes() -> None:
+    table = ReservationTable(D, H, 0.5)
+    a = line(-50.0, 0.0, 1.0, 0.0, 0.0, 101, 0.1)
+    far = a + np.array([1000.0, 1000.0, 0.0])
+    table.update("A", a, 0.0)
+    table.update("A", far, 0.1)
+    assert table.conflicts("X", a, 0.1, 10.0) == []
+    assert [c.vehicle for c in table.conflicts("X", far, 0.1, 10.0)] == ["A"]
+    assert table.remove("A") and not table.remove("A")
+    assert table.conflicts("X", far, 0.1, 10.0) == []
+    assert table.candidates(far) == set()
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [np.zeros((3, 2)), np.array([[0.0, 0.0, math.nan]]), np.array([[1e12, 0.0, 0.0]])],
+)
+def test_bad_paths_raise_and_change_nothing(bad: np.ndarray) -> None:
+    table = ReservationTable(D, H, 0.5)
+    a = line(-50.0, 0.0, 1.0, 0.0, 0.0, 101, 0.1)
+    table.update("A", a, 0.0)
+    with pytest.raises(ValueError):
+        table.update("A", bad, 0.1)
+    with pytest.raises(ValueError):
+        table.conflicts("B", bad, 0.1, 10.0)
+    assert table.get("A") is not None and np.array_equal(table.get("A").points, a)  # type: ignore[union-attr]
+
+
+def test_bad_parameters_raise() -> None:
+    with pytest.raises(ValueError):
+        ReservationTable(0.0, 1.0, 0.5)
+    with pytest.raises(ValueError):
+        ReservationTable(2.8, math.nan, 0.5)
+    with pytest.raises(ValueError):
+        ReservationTable(2.8, 1.0, -1.0)
+
+
+# Coordinates on a lattice of d_margin/2 and times on a lattice of headway/2 make pairs at
+# exactly d_margin and exactly headway frequent: the edge cases of both predicates.
+_coord = st.one_of(
+    st.integers(-12, 12).map(lambda k: k * D / 2),
+    st.floats(-20.0, 20.0, allow_nan=False),
+)
+_time = st.one_of(
+    st.integers(0, 16).map(lambda k: k * H / 2),
+    st.floats(0.0, 8.0, allow_nan=False),
+)
+_point = st.tuples(_coord, _coord, _time)
+_path = st.lists(_point, min_size=0, max_size=12).map(
+    lambda pts: np.array(pts, dtype=np.float64).reshape(-1, 3)
+)
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    others=st.lists(_path, min_size=0, max_size=6),
+    query=_path,
+    now=st.sampled_from([0.0, 0.5, 1.0, 2.25]),
+    horizon=st.sampled_from([1.0, 2.5, 5.0, 10.0]),
+)
+def test_indexed_query_equals_brute_force(
+    others: list[np.ndarray], query: np.ndarray, now: float, horizon: float
+) -> None:
+    table = ReservationTable(D, H, 0.5)
+    for i, pts in enumerate(others):
+        table.update(f"v{i}", pts, now)
+    fast = table.conflicts("q", query, now, horizon)
+    slow = table.naive_conflicts("q", query, now, horizon)
+    assert fast == slow
+    # and the brute force itself is right: recompute pair by pair, in plain Python
+    expected: dict[str, bool] = {}
+    for i, pts in enumerate(others):
+        hit = False
+        for qx, qy, qt in query.tolist():
+            if not now <= qt <= now + horizon:
+                continue
+            for ox, oy, ot in pts.tolist():
+                if not now <= ot <= now + horizon:
+                    continue
+                dx, dy = qx - ox, qy - oy
+                if dx * dx + dy * dy <= D * D and abs(qt - ot) < H:
+                    hit = True
+        expected[f"v{i}"] = hit
+    assert {c.vehicle for c in slow} == {v for v, hit in expected.items() if hit}
+    for c in slow:
+        assert isinstance(c, Conflict)
+        assert now <= c.self_time <= c.time <= now + horizon
+        assert now <= c.other_time <= c.time
+
+
+@settings(max_examples=100, deadline=None)
+@given(
+    dx=st.floats(-3.5, 3.5),
+    dy=st.floats(-3.5, 3.5),
+    dt=st.floats(-1.5, 1.5),
+    base=st.tuples(st.floats(-5000, 5000), st.floats(-5000, 5000), st.floats(0, 1000)),
+)
+def test_single_pair_near_the_margins(
+    dx: float, dy: float, dt: float, base: tuple[float, float, float]
+) -> None:
+    """One point each, anywhere in the plane, near the d_margin / headway boundary."""
+    x, y, t = base
+    table = ReservationTable(D, H, 0.5)
+    table.update("o", np.array([[x + dx, y + dy, t + dt]]), t - 2.0)
+    q = np.array([[x, y, t]])
+    fast = table.conflicts("q", q, t - 2.0, 5.0)
+    slow = table.naive_conflicts("q", q, t - 2.0, 5.0)
+    assert fast == slow
+    ddx, ddy = x - (x + dx), y - (y + dy)
+    expect = ddx * ddx + ddy * ddy <= D * D and abs(t - (t + dt)) < H
+    assert bool(fast) == expect

@@ -1,0 +1,285 @@
+"""Velocity manager (paper and slot policies) and the path helpers it stands on."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from protocol.messages import AutonomousPath, Header, Mode
+from services.rsu import paths
+from services.rsu.core import RsuConfig
+from services.rsu.reservation import ReservationTable
+from services.rsu.velocity import Policy, VelocityManager
+
+ZONE = np.array([[-3.5, -3.5], [3.5, -3.5], [3.5, 3.5], [-3.5, 3.5]])
+VMAX = 50 / 3.6
+
+
+def config(policy: Policy = Policy.PAPER) -> RsuConfig:
+    return RsuConfig("rsu-1", "x0", (0.0, 0.0), ZONE, policy=policy)
+
+
+def straight(
+    start: tuple[float, float], heading: float, v: float, t0: float, n: int = 120, horizon: float = 10
+) -> np.ndarray:
+    t = t0 + np.linspace(0.0, horizon, n)
+    s = v * (t - t0)
+    return np.column_stack([start[0] + s * math.cos(heading), start[1] + s * math.sin(heading), t])
+
+
+def ap(vehicle: str, points: np.ndarray, v: float, heading: float) -> AutonomousPath:
+    header = Header(vehicle, 1, round(float(points[0, 2]) * 1e6))
+    x, y = float(points[0, 0]), float(points[0, 1])
+    return AutonomousPath(header, x, y, v, heading, 4.5, 1.8, Mode.C_SLOW, points)
+
+
+def table_with(vehicle: str, points: np.ndarray, now: float = 0.0) -> ReservationTable:
+    table = ReservationTable(2.8, 1.0, 0.5)
+    table.update(vehicle, points, now)
+    return table
+
+
+# The crafted crossing: A eastbound on y = -1.75, B northbound on x = +1.75; their paths
+# cross at (1.75, -1.75). A passes it at 4 s.
+CROSS = (1.75, -1.75)
+
+
+def car_a(v: float = VMAX, at: float = 4.0) -> np.ndarray:
+    return straight((CROSS[0] - at * v, CROSS[1]), 0.0, v, 0.0)
+
+
+def car_b(v: float, at: float) -> AutonomousPath:
+    return ap("B", straight((CROSS[0], CROSS[1] - at * v), math.pi / 2, v, 0.0), v, math.pi / 2)
+
+
+# -- paths ------------------------------------------------------------------------------------
+
+
+def test_retime_inverts_segment_speeds() -> None:
+    rng = np.random.default_rng(1)
+    xy = np.cumsum(rng.uniform(0.2, 2.0, size=(30, 2)), axis=0)
+    t = np.cumsum(rng.uniform(0.05, 0.3, size=30)) + 7.0
+    pts = np.column_stack([xy, t])
+    speeds = paths.segment_speeds(pts, 3.0)
+    assert speeds[0] == 3.0
+    back = paths.retime(pts, speeds, float(t[0]))
+    np.testing.assert_allclose(back, pts, rtol=1e-12, atol=1e-9)
+
+
+def test_retime_eq1_and_unreachable_points() -> None:
+    pts = np.array([[0.0, 0.0, 0.0], [3.0, 4.0, 9.0], [3.0, 4.0, 9.0], [6.0, 8.0, 9.0]])
+    out = paths.retime(pts, np.array([1.0, 5.0, 0.0, 0.0]), 2.0)
+    assert out[:3, 2].tolist() == [2.0, 3.0, 3.0]  # 5 m at 5 m/s; a zero-length segment
+    assert out[3, 2] == math.inf  # 5 m at 0 m/s: never
+    np.testing.assert_array_equal(out[:, :2], pts[:, :2])
+    assert paths.arc_length(pts).tolist() == [0.0, 5.0, 5.0, 10.0]
+
+
+def test_zone_helpers() -> None:
+    zone = paths.convex_polygon(ZONE[::-1])  # clockwise works too
+    inside = paths.inside_convex(np.array([[0, 0], [3.5, 3.5], [3.6, 0], [-10, 0]]), zone)
+    assert inside.tolist() == [True, True, False, False]
+    east = straight((-20.0, -1.75), 0.0, 10.0, 0.0, n=41, horizon=4.0)  # 1 m apart
+    span = paths.zone_span(east, zone)
+    assert span is not None
+    assert east[span[0], 0] == pytest.approx(-3.0) and east[span[1], 0] == pytest.approx(4.0)
+    assert paths.zone_entry_time(east, zone) == pytest.approx(1.7)
+    assert paths.zone_span(east + [0, 10, 0], zone) is None
+    assert paths.zone_entry_time(east + [0, 10, 0], zone) == math.inf
+    assert paths.polygon_centroid(zone + 5.0) == pytest.approx((5.0, 5.0))
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [
+        [[0, 0], [1, 0]],
+        [[0, 0], [2, 0], [1, 1], [2, 2], [0, 2]],  # not convex
+        [[0, 0], [1, 1], [2, 2]],  # no area
+        [[0, 0], [1, 0], [math.inf, 1]],
+    ],
+)
+def test_bad_zone_raises(bad: list[list[float]]) -> None:
+    with pytest.raises(ValueError):
+        paths.convex_polygon(bad)
+
+
+def test_leaving_and_approaching() -> None:
+    zone = paths.convex_polygon(ZONE)
+    c = (0.0, 0.0)
+    assert not paths.is_leaving(-10.0, -1.75, 0.0, zone, c)  # before the zone, eastbound
+    assert not paths.is_leaving(2.0, -1.75, 0.0, zone, c)  # inside
+    assert paths.is_leaving(5.0, -1.75, 0.0, zone, c)  # past it, moving away
+    assert not paths.is_leaving(5.0, -1.75, math.pi, zone, c)  # westbound: approaching
+    east = straight((-100.0, -1.75), 0.0, VMAX, 0.0)
+    assert paths.is_approaching(-100.0, -1.75, east, zone, c, 150.0, 0.0, 10.0)
+    assert not paths.is_approaching(-100.0, -1.75, east, zone, c, 150.0, 0.0, 6.0)  # too far
+    assert not paths.is_approaching(-100.0, -1.75, east, zone, c, 90.0, 0.0, 10.0)  # coverage
+    assert not paths.is_approaching(0.0, -1.75, east + [100, 0, 0], zone, c, 150.0, 0.0, 10.0)
+
+
+# -- paper policy ----------------------------------------------------------------------------
+
+
+def test_paper_slow_is_an_honest_comfortable_stop_with_zero_speeds() -> None:
+    cfg = config()
+    vm = VelocityManager(cfg)
+    path = car_b(10.0, 6.0).points
+    plan = vm.plan("B", ap("B", path, 10.0, math.pi / 2), Mode.C_SLOW, 0.0, ReservationTable())
+    assert plan.kind == "stop"
+    assert np.all(plan.speeds == 0.0) and plan.speeds.shape[0] == plan.points.shape[0]
+    stop_s = 10.0**2 / (2 * cfg.decel_comfort_mps2)  # 25 m
+    y = plan.points[:, 1]
+    assert y.max() == pytest.approx(path[0, 1] + stop_s)
+    moving = plan.points[plan.points[:, 1] < y.max() - 1e-9]
+    # positions are the autonomous path's (a prefix of it), then the stop point
+    np.testing.assert_allclose(moving[:, :2], path[: moving.shape[0], :2])
+    # times: the braking curve s(t) = v t - b t^2 / 2, stop at t = v / b = 5 s
+    s = moving[:, 1] - path[0, 1]
+    expected_t = (10.0 - np.sqrt(10.0**2 - 2 * cfg.decel_comfort_mps2 * s)) / 2.0
+    np.testing.assert_allclose(moving[:, 2], expected_t, atol=1e-9)
+    t_stop = plan.points[moving.shape[0], 2]
+    assert t_stop == pytest.approx(5.0)
+    # then it holds until the horizon, points at most hold_step apart
+    held = plan.points[moving.shape[0] :]
+    assert np.all(held[:, 1] == y.max())
+    assert held[-1, 2] == pytest.approx(cfg.t_free_s)
+    assert np.diff(held[:, 2]).max() <= cfg.hold_step_s + 1e-9
+    assert np.all(np.diff(plan.points[:, 2]) >= 0.0)
+
+
+def test_paper_slow_of_a_car_at_rest_holds_where_it_is() -> None:
+    vm = VelocityManager(config())
+    path = straight((1.75, -30.0), math.pi / 2, 0.0, 3.0)  # all points at one place
+    plan = vm.plan("B", ap("B", path, 0.0, math.pi / 2), Mode.C_SLOW, 3.0, ReservationTable())
+    assert np.all(plan.points[:, :2] == [1.75, -30.0])
+    assert plan.points[0, 2] == 3.0 and plan.points[-1, 2] == pytest.approx(13.0)
+    assert np.all(plan.speeds == 0.0)
+
+
+def test_paper_fast_is_vmax_through_the_zone_then_own_speeds() -> None:
+    cfg = config()
+    vm = VelocityManager(cfg)
+    # B at 5 m/s, 40 m before the crossing point; its own plan: 8 m/s
+    path = straight((1.75, -41.75), math.pi / 2, 8.0, 0.0)
+    plan = vm.plan("B", ap("B", path, 5.0, math.pi / 2), Mode.C_FAST, 0.0, ReservationTable())
+    assert plan.kind == "fast"
+    np.testing.assert_allclose(plan.points[:, :2], path[:, :2])  # same positions
+    y = plan.points[:, 1]
+    exit_y = y[np.flatnonzero(y > 3.5)[0]]
+    through = y <= exit_y + 4.5
+    assert np.all(plan.speeds[through] == pytest.approx(VMAX))
+    assert np.all(plan.speeds[~through][1:] == pytest.approx(8.0))
+    # honest times: accelerating at 1.5 m/s^2 from 5 m/s, not jumping to V_max
+    s = y - y[0]
+    t_acc = (-5.0 + np.sqrt(25.0 + 2 * 1.5 * s)) / 1.5
+    early = s < 30.0  # before it must brake for the 8 m/s after the zone (at 34 m)
+    np.testing.assert_allclose(plan.points[early, 2], t_acc[early], rtol=1e-6, atol=1e-6)
+    assert plan.entry_time == pytest.approx(plan.points[np.flatnonzero(y >= -3.5)[0], 2])
+
+
+def test_paper_fast_keeps_the_stop_at_the_end_of_an_autonomous_path() -> None:
+    vm = VelocityManager(config())
+    path = straight((1.75, -20.0), math.pi / 2, 5.0, 0.0, n=60, horizon=6.0)
+    held = np.vstack([path, np.column_stack([np.repeat(path[-1:, :2], 5, 0), path[-1, 2] + 1 + np.arange(5)])])
+    plan = vm.plan("B", ap("B", held, 5.0, math.pi / 2), Mode.C_FAST, 0.0, ReservationTable())
+    assert plan.speeds[-1] == 0.0
+    assert np.all(plan.points[-1, :2] == path[-1, :2])
+    assert plan.points[-1, 2] >= 10.0 - 1e-9  # held until the horizon
+    assert np.all(np.isfinite(plan.points))
+
+
+def test_plan_for_auto_is_refused() -> None:
+    vm = VelocityManager(config())
+    with pytest.raises(ValueError):
+        vm.plan("B", car_b(VMAX, 4.5), Mode.AUTO, 0.0, ReservationTable())
+
+
+# -- the crafted crossing, both policies -------------------------------------------------------
+
+
+@pytest.mark.parametrize(("v_b", "gap"), [(VMAX, 0.5), (5.0, 1.5)])
+def test_crossing_paper_stops_and_slot_delays_just_enough(v_b: float, gap: float) -> None:
+    """B reaches the crossing ``gap`` s after A: a conflict at either speed."""
+    table = table_with("A", car_a())
+    b = car_b(v_b, 4.0 + gap)
+    assert table.naive_conflicts("B", b.points, 0.0, 10.0), "the crafted case must conflict"
+
+    paper = VelocityManager(config(Policy.PAPER)).plan("B", b, Mode.C_SLOW, 0.0, table)
+    assert np.all(paper.speeds == 0.0)
+
+    vm = VelocityManager(config(Policy.SLOT))
+    slot = vm.plan("B", b, Mode.C_SLOW, 0.0, table)
+    assert slot.kind == "slot"
+    assert table.naive_conflicts("B", slot.points, 0.0, 10.0) == []
+    # B does not stop: every target speed and every segment speed stays positive
+    assert slot.speeds.min() > 1.0
+    seg = paths.segment_speeds(slot.points, v_b)[1:]
+    assert seg.min() > 1.0
+    np.testing.assert_allclose(slot.points[:, :2], b.points[:, :2])  # same positions
+    # later than it would have entered alone, by about what the headway needs, not more
+    own_entry = paths.zone_entry_time(b.points, ZONE)
+    assert slot.entry_time > own_entry
+    assert slot.entry_time - own_entry < 2.0
+    # and the earliest such slot: one search step earlier still conflicts
+    tr_ap = b
+    earlier = vm._meet(  # one step earlier
+        *_meet_args(vm, tr_ap), slot.entry_time - config().slot_step_s
+    )
+    assert earlier is not None
+    assert table.naive_conflicts("B", earlier.points, 0.0, 10.0) != []
+
+
+def _meet_args(vm: VelocityManager, path: AutonomousPath) -> tuple:  # type: ignore[type-arg]
+    from services.rsu import velocity
+
+    tr = velocity._track(path, VMAX, 0.0, 10.0)
+    cap, entry = vm._fast_caps(tr, path.length)
+    assert entry is not None
+    env = velocity._envelope(tr.d, cap, 2.0)
+    return tr, entry, env, cap, path.length
+
+
+def test_slot_stops_before_the_zone_when_the_wait_is_long() -> None:
+    """A crawls through the crossing (1 m/s, there from 3 s to 9 s): B must stop and wait."""
+    cfg = config(Policy.SLOT)
+    slow_a = straight((CROSS[0] - 6.0, CROSS[1]), 0.0, 1.0, 0.0)
+    table = table_with("A", slow_a)
+    b = car_b(5.0, 3.0)  # 15 m before the crossing at 5 m/s
+    plan = VelocityManager(cfg).plan("B", b, Mode.C_SLOW, 0.0, table)
+    assert plan.kind == "slot_stop"
+    assert table.naive_conflicts("B", plan.points, 0.0, 10.0) == []
+    stopped = plan.points[plan.speeds == 0.0]
+    assert stopped.shape[0] >= 2
+    # stopped short of the zone by at least half a car and the gap
+    assert stopped[:, 1].max() <= -3.5 - (4.5 / 2 + cfg.stop_gap_m) + 1e-9
+    assert np.all(np.diff(plan.points[:, 2]) >= -1e-12)
+    assert plan.entry_time > paths.zone_entry_time(b.points, ZONE)
+
+
+def test_slot_falls_back_to_the_paper_stop_when_it_cannot_stop_in_time() -> None:
+    """B is 12 m before the zone at V_max: it can neither stop nor find a gap."""
+    table = ReservationTable()
+    # a wall of cars crossing every 0.5 s for the whole horizon
+    for i in range(24):
+        table.update(f"A{i}", straight((CROSS[0] - 20.0 - 7 * i, CROSS[1]), 0.0, VMAX, 0.0), 0.0)
+    b = car_b(VMAX, 1.0)
+    plan = VelocityManager(config(Policy.SLOT)).plan("B", b, Mode.C_SLOW, 0.0, table)
+    assert plan.kind == "slot_fallback"
+    assert np.all(plan.speeds == 0.0)
+
+
+def test_slot_for_a_car_already_in_the_zone_is_the_paper_stop() -> None:
+    path = straight((1.75, -1.0), math.pi / 2, 5.0, 0.0)
+    plan = VelocityManager(config(Policy.SLOT)).plan(
+        "B", ap("B", path, 5.0, math.pi / 2), Mode.C_SLOW, 0.0, ReservationTable()
+    )
+    assert plan.kind == "slot_fallback" and np.all(plan.speeds == 0.0)
+
+
+def test_slot_without_conflict_is_the_fastest_path() -> None:
+    b = car_b(VMAX, 5.0)
+    plan = VelocityManager(config(Policy.SLOT)).plan("B", b, Mode.C_SLOW, 0.0, ReservationTable())
+    assert plan.kind == "slot"
+    np.testing.assert_allclose(plan.points[:, 2], b.points[:, 2], atol=1e-6)

@@ -1,0 +1,15 @@
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from services.world.scenario import Scenario, load_scenario
+
+ROOT = Path(__file__).resolve().parents[2]
+PAPER = ROOT / "scenarios" / "paper-blind-intersection.toml"
+
+
+@pytest.fixture(scope="session")
+def paper() -> Scenario:
+    return load_scenario(PAPER)
