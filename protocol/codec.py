@@ -72,6 +72,9 @@ _I32_MAX: Final = 2**31 - 1
 _MAX_COORD_CM: Final = round(MAX_COORD_M * 100)
 _MAX_SPEED_CM_S: Final = round(MAX_SPEED_MPS * 100)
 _MAX_HEADING: Final = 31416  # 1e-4 rad, ceil(pi * 1e4)
+_MAX_LENGTH_CM: Final = round(MAX_LENGTH_M * 100)
+_MAX_WIDTH_CM: Final = round(MAX_WIDTH_M * 100)
+_MAX_RADIUS_CM: Final = round(MAX_RADIUS_M * 100)
 
 # header: magic, version, kind, flags, seq, time_us, sender length (then the sender id)
 _HEAD: Final = struct.Struct("<BBBBIqB")
@@ -92,8 +95,7 @@ _ID_BYTES_RE: Final = re.compile(rf"[{ID_CHARS}]{{1,{MAX_ID_LEN}}}".encode("asci
 _T_COLUMN: Final = 2
 _DTYPES_SIGNED: Final = (None, np.dtype("<i1"), np.dtype("<i2"))
 _DTYPES_UNSIGNED: Final = (None, np.dtype("<u1"), np.dtype("<u2"))
-_SCALE3: Final = np.array([[100.0], [100.0], [1000.0]])  # m, m, s -> cm, cm, ms
-_DIVISORS: Final = np.array([[100.0], [100.0], [1e6]])  # cm, cm, µs -> m, m, s
+_SCALE3: Final = np.array([[100.0], [100.0], [1000.0]])  # m, m, s <-> cm, cm, ms
 _COLUMN_NAMES: Final = ("x", "y", "t", "speed")
 # bounds in wire units (cm, ms after header time, cm/s) of the first point (all speeds)
 _COL_LO: Final = (-_MAX_COORD_CM, -_MAX_COORD_CM, _I32_MIN, 0)
@@ -174,7 +176,7 @@ def _header(kind: Kind, header: Header) -> tuple[bytes, bytes]:
     flags = operator.index(header.flags)
     if flags & ~_KNOWN_FLAGS or flags < 0:
         raise EncodeError(f"unknown header flag bits {flags:#x}")
-    auth = bytes(header.auth)
+    auth = header.auth if type(header.auth) is bytes else bytes(header.auth)
     if bool(flags & Flags.AUTH) != bool(auth):
         raise EncodeError("header.auth must be non-empty exactly when flags has Flags.AUTH")
     trailer = b""
@@ -203,11 +205,11 @@ def _points(
     ncols = 3 if speeds is None else 4
     # column-major wire units: x [cm], y [cm], t [ms after the header time], speed [cm/s]
     cols = np.empty((ncols, n))
-    np.multiply(points.T, _SCALE3, out=cols[:3])
+    np.multiply(points.T, _SCALE3, cols[:3])
     cols[_T_COLUMN] -= time_us / 1000.0
     if speeds is not None:
-        np.multiply(speeds, 100.0, out=cols[3])
-    np.rint(cols, out=cols)
+        np.multiply(speeds, 100.0, cols[3])
+    np.rint(cols, cols)
     first: list[float] = cols[:, 0].tolist()
     for c in range(ncols):
         # NaN fails both comparisons, infinities one
@@ -221,8 +223,8 @@ def _points(
     widths = 0
     if n > 1:
         deltas = np.subtract(cols[:, 1:], cols[:, :-1])  # exact: integers far below 2**53
-        dlo: list[float] = np.minimum.reduce(deltas, axis=1).tolist()
-        dhi: list[float] = np.maximum.reduce(deltas, axis=1).tolist()
+        dlo: list[float] = np.minimum.reduce(deltas, 1).tolist()
+        dhi: list[float] = np.maximum.reduce(deltas, 1).tolist()
         for c in range(ncols):
             code = _width_code(points, speeds, c, dlo[c], dhi[c])
             if code:
@@ -275,7 +277,7 @@ def _raise_bad_column(points: FloatArray, speeds: FloatArray | None, column: int
 def _encode_vehicle_path(kind: Kind, m: VehiclePath) -> list[bytes]:
     head, trailer = _header(kind, m.header)
     n, widths, packed = _points(kind, m.points, None, m.header.time_us)
-    mode = Mode(m.mode)
+    mode = _mode(m.mode)
     heading = float(m.heading)
     if math.isfinite(heading) and abs(heading) > _MAX_HEADING / 1e4:
         heading = math.remainder(heading, math.tau)  # into [-pi, pi]
@@ -284,8 +286,8 @@ def _encode_vehicle_path(kind: Kind, m: VehiclePath) -> list[bytes]:
         _fixed(m.y, 100.0, -_MAX_COORD_CM, _MAX_COORD_CM, "y", "m"),
         _fixed(m.speed, 100.0, 0, _MAX_SPEED_CM_S, "speed", "m/s"),
         _fixed(heading, 1e4, -_MAX_HEADING, _MAX_HEADING, "heading", "rad"),
-        _fixed(m.length, 100.0, 1, round(MAX_LENGTH_M * 100), "length", "m"),
-        _fixed(m.width, 100.0, 1, round(MAX_WIDTH_M * 100), "width", "m"),
+        _fixed(m.length, 100.0, 1, _MAX_LENGTH_CM, "length", "m"),
+        _fixed(m.width, 100.0, 1, _MAX_WIDTH_CM, "width", "m"),
         mode,
         n,
         widths,
@@ -304,7 +306,7 @@ def _encode_autonomous_path(m: Any) -> list[bytes]:
 def _encode_coordinated_path(m: CoordinatedPath) -> list[bytes]:
     head, trailer = _header(Kind.COORDINATED_PATH, m.header)
     vehicle = _id_bytes(m.vehicle, "vehicle id")
-    mode = Mode(m.mode)
+    mode = _mode(m.mode)
     if mode is Mode.AUTO:
         raise EncodeError("a coordinated path has mode C_SLOW or C_FAST, not AUTO")
     if m.speeds.shape != (m.points.shape[0],):
@@ -318,7 +320,7 @@ def _encode_mode_command(m: ModeCommand) -> list[bytes]:
     head, trailer = _header(Kind.MODE_COMMAND, m.header)
     vehicle = _id_bytes(m.vehicle, "vehicle id")
     command = Command(m.command)
-    mode = Mode(m.mode)
+    mode = _mode(m.mode)
     _check_command(command, mode, EncodeError)
     body = _U8.pack(len(vehicle)) + vehicle + _COMMAND.pack(command, mode)
     return [head, body, trailer]
@@ -330,9 +332,16 @@ def _encode_rsu_beacon(m: RsuBeacon) -> list[bytes]:
     body = _BEACON.pack(
         _fixed(m.x, 100.0, -_MAX_COORD_CM, _MAX_COORD_CM, "x", "m"),
         _fixed(m.y, 100.0, -_MAX_COORD_CM, _MAX_COORD_CM, "y", "m"),
-        _fixed(m.radius, 100.0, 1, round(MAX_RADIUS_M * 100), "radius", "m"),
+        _fixed(m.radius, 100.0, 1, _MAX_RADIUS_CM, "radius", "m"),
     )
     return [head, _U8.pack(len(intersection)) + intersection + body, trailer]
+
+
+def _mode(value: Mode | int) -> Mode:
+    mode = _MODES.get(value)
+    if mode is None:
+        raise EncodeError(f"invalid mode {value!r}")
+    return mode
 
 
 def _check_command(command: Command, mode: Mode, error: type[ValueError]) -> None:
@@ -409,15 +418,16 @@ def _read_points(
     for c in range(ncols):
         if not _COL_LO[c] <= first[c] <= _COL_HI[c]:
             raise DecodeError(f"first point: {_COLUMN_NAMES[c]} out of range")
-    # column-major, int64: x [cm], y [cm], t [µs on the run's time base], speed [cm/s]
-    cols = np.empty((ncols, n), dtype=np.int64)
+    # column-major float64 holding integers (sums stay exact below 2**53): x [cm], y [cm],
+    # t [ms on the run's time base], speed [cm/s]
+    cols = np.empty((ncols, n))
     cols[:, 0] = first
-    cols[_T_COLUMN, 0] = first[_T_COLUMN] * 1000 + time_us
+    cols[_T_COLUMN, 0] += time_us / 1000.0
     count = n - 1
     for c in range(ncols):
         code = (widths >> (2 * c)) & 3
         if code == 0:
-            cols[c, 1:] = 0
+            cols[c, 1:] = 0.0
             continue
         if code == 3:
             raise DecodeError(f"reserved width code 3 for column {_COLUMN_NAMES[c]}")
@@ -425,18 +435,16 @@ def _read_points(
         if end > len(buf):
             raise DecodeError(f"truncated: column {_COLUMN_NAMES[c]} needs {end} bytes")
         dtypes = _DTYPES_UNSIGNED if c == _T_COLUMN else _DTYPES_SIGNED
-        cols[c, 1:] = np.frombuffer(buf, dtype=dtypes[code], count=count, offset=off)
-        if c == _T_COLUMN:
-            cols[c, 1:] *= 1000
+        cols[c, 1:] = np.frombuffer(buf, dtypes[code], count, off)
         off = end
-    np.add.accumulate(cols, axis=1, out=cols)
+    np.add.accumulate(cols, 1, None, cols)
     speeds = None
     if ncols == 4:
         if np.minimum.reduce(cols[3]) < 0 or np.maximum.reduce(cols[3]) > _MAX_SPEED_CM_S:
             raise DecodeError("path speeds out of range")
         speeds = cols[3] / 100.0
     points = np.empty((n, 3))
-    np.divide(cols[:3], _DIVISORS, out=points.T)
+    np.divide(cols[:3], _SCALE3, points.T)
     return points, speeds, off
 
 
@@ -481,78 +489,81 @@ def _decode(data: bytes | bytearray | memoryview) -> Message:
         raise DecodeError(f"bad magic {magic:#04x}: not a crosspath datagram")
     if version != FORMAT_VERSION:
         raise DecodeError(f"unsupported format version {version} (this is {FORMAT_VERSION})")
-    kind: Kind = _enum(_KINDS, kind_value, "message kind")
+    kind = _KINDS.get(kind_value)
+    if kind is None:
+        raise DecodeError(f"invalid message kind {kind_value}")
     if flags & ~_KNOWN_FLAGS:
         raise DecodeError(f"unknown header flag bits {flags:#04x}")
     if not -MAX_TIME_US <= time_us <= MAX_TIME_US:
         raise DecodeError(f"absurd generation time {time_us} µs")
     off = _HEAD.size
     sender = _read_id(buf, off, sender_len, "sender id")
-    off += sender_len
-
-    build: Callable[[Header], Message]
-    if kind is Kind.FUTURE_PATH or kind is Kind.AUTONOMOUS_PATH:
-        x, y, speed, heading, length, width, mode_v, n, widths = _STATE.unpack_from(buf, off)
-        off += _STATE.size
-        mode: Mode = _enum(_MODES, mode_v, "mode")
-        if not (abs(x) <= _MAX_COORD_CM and abs(y) <= _MAX_COORD_CM):
-            raise DecodeError("absurd position")
-        if speed > _MAX_SPEED_CM_S:
-            raise DecodeError(f"absurd speed {speed / 100} m/s")
-        if abs(heading) > _MAX_HEADING:
-            raise DecodeError(f"heading {heading / 1e4} rad beyond ±pi")
-        if not (1 <= length <= MAX_LENGTH_M * 100 and 1 <= width <= MAX_WIDTH_M * 100):
-            raise DecodeError(f"absurd vehicle shape {length / 100} m x {width / 100} m")
-        points, _, off = _read_points(buf, off, kind, n, widths, 3, time_us)
-        cls = FuturePath if kind is Kind.FUTURE_PATH else AutonomousPath
-
-        def build(header: Header) -> Message:
-            return cls(
-                header, x / 100, y / 100, speed / 100, heading / 1e4,
-                length / 100, width / 100, mode, points,
-            )
-
-    elif kind is Kind.COORDINATED_PATH:
-        vehicle = _read_id(buf, off + 1, buf[off], "vehicle id")
-        off += 1 + len(vehicle)
-        mode_v, n, widths = _CP_STATE.unpack_from(buf, off)
-        off += _CP_STATE.size
-        cp_mode: Mode = _enum(_MODES, mode_v, "mode")
-        if cp_mode is Mode.AUTO:
-            raise DecodeError("a coordinated path with mode AUTO")
-        points, cp_speeds, off = _read_points(buf, off, kind, n, widths, 4, time_us)
-        speeds = np.empty(0) if cp_speeds is None else cp_speeds
-
-        def build(header: Header) -> Message:
-            return CoordinatedPath(header, vehicle, cp_mode, points, speeds)
-
-    elif kind is Kind.MODE_COMMAND:
-        vehicle = _read_id(buf, off + 1, buf[off], "vehicle id")
-        off += 1 + len(vehicle)
-        command_v, mode_v = _COMMAND.unpack_from(buf, off)
-        off += _COMMAND.size
-        command: Command = _enum(_COMMANDS, command_v, "command")
-        cmd_mode: Mode = _enum(_MODES, mode_v, "mode")
-        _check_command(command, cmd_mode, DecodeError)
-
-        def build(header: Header) -> Message:
-            return ModeCommand(header, vehicle, command, cmd_mode)
-
-    else:  # Kind.RSU_BEACON
-        intersection = _read_id(buf, off + 1, buf[off], "intersection id")
-        off += 1 + len(intersection)
-        bx, by, radius = _BEACON.unpack_from(buf, off)
-        off += _BEACON.size
-        if not (abs(bx) <= _MAX_COORD_CM and abs(by) <= _MAX_COORD_CM):
-            raise DecodeError("absurd position")
-        if not 1 <= radius <= MAX_RADIUS_M * 100:
-            raise DecodeError(f"absurd coverage radius {radius / 100} m")
-
-        def build(header: Header) -> Message:
-            return RsuBeacon(header, intersection, bx / 100, by / 100, radius / 100)
-
+    cls, args, off = _BODY_READERS[kind](buf, off + sender_len, kind, time_us)
     auth = _read_trailer(buf, off, flags)
-    return build(Header(sender, seq, time_us, flags, auth))
+    return cls(Header(sender, seq, time_us, flags, auth), *args)
+
+
+_Body = tuple[Callable[..., Message], tuple[Any, ...], int]
+
+
+def _read_vehicle_path(buf: bytes, off: int, kind: Kind, time_us: int) -> _Body:
+    x, y, speed, heading, length, width, mode_v, n, widths = _STATE.unpack_from(buf, off)
+    mode = _MODES.get(mode_v)
+    if mode is None:
+        raise DecodeError(f"invalid mode {mode_v}")
+    if not (-_MAX_COORD_CM <= x <= _MAX_COORD_CM and -_MAX_COORD_CM <= y <= _MAX_COORD_CM):
+        raise DecodeError("absurd position")
+    if speed > _MAX_SPEED_CM_S:
+        raise DecodeError(f"absurd speed {speed / 100} m/s")
+    if not -_MAX_HEADING <= heading <= _MAX_HEADING:
+        raise DecodeError(f"heading {heading / 1e4} rad beyond ±pi")
+    if not (1 <= length <= _MAX_LENGTH_CM and 1 <= width <= _MAX_WIDTH_CM):
+        raise DecodeError(f"absurd vehicle shape {length / 100} m x {width / 100} m")
+    points, _, off = _read_points(buf, off + _STATE.size, kind, n, widths, 3, time_us)
+    cls = FuturePath if kind is Kind.FUTURE_PATH else AutonomousPath
+    args = (x / 100, y / 100, speed / 100, heading / 1e4, length / 100, width / 100, mode, points)
+    return cls, args, off
+
+
+def _read_coordinated_path(buf: bytes, off: int, kind: Kind, time_us: int) -> _Body:
+    vehicle = _read_id(buf, off + 1, buf[off], "vehicle id")
+    off += 1 + len(vehicle)
+    mode_v, n, widths = _CP_STATE.unpack_from(buf, off)
+    mode: Mode = _enum(_MODES, mode_v, "mode")
+    if mode is Mode.AUTO:
+        raise DecodeError("a coordinated path with mode AUTO")
+    points, speeds, off = _read_points(buf, off + _CP_STATE.size, kind, n, widths, 4, time_us)
+    return CoordinatedPath, (vehicle, mode, points, speeds), off
+
+
+def _read_mode_command(buf: bytes, off: int, kind: Kind, time_us: int) -> _Body:
+    vehicle = _read_id(buf, off + 1, buf[off], "vehicle id")
+    off += 1 + len(vehicle)
+    command_v, mode_v = _COMMAND.unpack_from(buf, off)
+    command: Command = _enum(_COMMANDS, command_v, "command")
+    mode: Mode = _enum(_MODES, mode_v, "mode")
+    _check_command(command, mode, DecodeError)
+    return ModeCommand, (vehicle, command, mode), off + _COMMAND.size
+
+
+def _read_rsu_beacon(buf: bytes, off: int, kind: Kind, time_us: int) -> _Body:
+    intersection = _read_id(buf, off + 1, buf[off], "intersection id")
+    off += 1 + len(intersection)
+    x, y, radius = _BEACON.unpack_from(buf, off)
+    if not (-_MAX_COORD_CM <= x <= _MAX_COORD_CM and -_MAX_COORD_CM <= y <= _MAX_COORD_CM):
+        raise DecodeError("absurd position")
+    if not 1 <= radius <= _MAX_RADIUS_CM:
+        raise DecodeError(f"absurd coverage radius {radius / 100} m")
+    return RsuBeacon, (intersection, x / 100, y / 100, radius / 100), off + _BEACON.size
+
+
+_BODY_READERS: Final[dict[Kind, Callable[[bytes, int, Kind, int], _Body]]] = {
+    Kind.FUTURE_PATH: _read_vehicle_path,
+    Kind.AUTONOMOUS_PATH: _read_vehicle_path,
+    Kind.COORDINATED_PATH: _read_coordinated_path,
+    Kind.MODE_COMMAND: _read_mode_command,
+    Kind.RSU_BEACON: _read_rsu_beacon,
+}
 
 
 def decode(data: bytes | bytearray | memoryview) -> Message:

@@ -91,6 +91,9 @@ class RsuConfig:
     slot_step_s: float = 0.1  # slot: granularity of the entry-time search
     slot_min_speed_mps: float = 2.0  # slot: below this, stop and wait rather than crawl
     hold_step_s: float = 0.5  # spacing of the points holding a stop (< 2 * headway)
+    release_margin_m: float = 0.6  # hysteresis: "free" and releases need this much more room
+    release_margin_s: float = 0.2  # ... and this much more headway (see services.rsu.modes)
+    max_points: int | None = None  # cap on coordinated path points (the codec's limit), or none
 
     def __post_init__(self) -> None:
         if not self.rsu_id or not self.intersection:
@@ -120,8 +123,12 @@ class RsuConfig:
             value = getattr(self, name)
             if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
                 raise ValueError(f"RsuConfig.{name} must be positive and finite, got {value!r}")
-        if not (math.isfinite(self.stop_gap_m) and self.stop_gap_m >= 0):
-            raise ValueError(f"RsuConfig.stop_gap_m must be >= 0, got {self.stop_gap_m!r}")
+        for name in ("stop_gap_m", "release_margin_m", "release_margin_s"):
+            value = getattr(self, name)
+            if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
+                raise ValueError(f"RsuConfig.{name} must be finite and >= 0, got {value!r}")
+        if self.max_points is not None and self.max_points < 2:
+            raise ValueError("RsuConfig.max_points must be at least 2")
         if self.t_collision_s > self.t_free_s:
             raise ValueError("t_collision_s must not exceed t_free_s")
         if self.slot_min_speed_mps >= self.v_max_mps:
@@ -196,7 +203,8 @@ class RsuCore:
         self._cars: dict[str, _Car] = {}
         self._seq = 0
         self._next_beacon: float | None = None
-        self._zone_centre = paths.polygon_centroid(config.conflict_zone)
+        self._zone = paths.ConvexZone.of(config.conflict_zone)
+        self._margins = (config.release_margin_m, config.release_margin_s)
 
     # -- queries --------------------------------------------------------------------------
 
@@ -305,17 +313,26 @@ class RsuCore:
             self._cars[vehicle] = car
             self.counters["vehicles_seen"] += 1
         car.observe(fp)
-        if car.mode != Mode.AUTO:
-            # Coordinated: the future path is discarded (paper), except that it shows where
-            # the car is; its table entry stays the coordinated path it was sent.
-            if self._leaving(car):
-                return self._apply(now, car, Event.LEAVING, fp, None)
-            self.table.touch(vehicle, now)
-            return []
+        coordinated = car.mode != Mode.AUTO
+        if coordinated and self._leaving(car):
+            return self._apply(now, car, Event.LEAVING, fp, None)
         if car.pending is not None and vehicle in self.table:
             # It has not taken our last command yet: this path does not reflect it.
             self.table.touch(vehicle, now)
             self.counters["fp_unacknowledged"] += 1
+            return []
+        if coordinated:
+            # The future path is discarded (paper), except that it shows where the car is
+            # and that it is alive; its table entry stays the coordinated path it was sent.
+            self.table.touch(vehicle, now)
+            if fp.mode != car.mode:
+                # Soft state: the car has fallen back to its own planner (no coordinated path
+                # reached it for 0.3 s, e.g. under packet loss). Take it back.
+                self.counters["reinitiations"] += 1
+                return [
+                    self._command(now, car, Command.INITIATE, car.mode),
+                    self._coordinate(now, car, fp, None),
+                ]
             return []
         car.autonomous = fp
         return self._decide(now, car, fp)
@@ -348,9 +365,7 @@ class RsuCore:
     # -- decisions ------------------------------------------------------------------------
 
     def _leaving(self, car: _Car) -> bool:
-        return paths.is_leaving(
-            car.x, car.y, car.heading, self.config.conflict_zone, self._zone_centre
-        )
+        return paths.is_leaving(car.x, car.y, car.heading, self._zone)
 
     def _approaching(self, car: _Car, path: VehiclePath, now: float) -> bool:
         cfg = self.config
@@ -358,12 +373,20 @@ class RsuCore:
             car.x,
             car.y,
             path.points,
-            cfg.conflict_zone,
+            self._zone,
             cfg.center,
             cfg.coverage_m,
             now,
             cfg.t_free_s,
         )
+
+    def _clear(self, car: _Car, query: FloatArray, now: float) -> bool:
+        """No conflict within ``T_free`` even with the release margins (hysteresis)."""
+        if car.mode != Mode.AUTO:
+            return True  # C_SLOW was already judged with the margins; C_FAST stays anyway
+        cfg = self.config
+        found = self.table.conflicts(car.vehicle, query, now, cfg.t_free_s, (), *self._margins)
+        return not found
 
     def _yields(self, car: _Car, car_points: FloatArray, other: _Car) -> bool:
         """Must ``car`` (whose path is ``car_points``) give way to ``other``?"""
@@ -374,7 +397,7 @@ class RsuCore:
             return True
         if car.mode == fast and other.mode == fast:
             entry = self.table.get(other.vehicle)
-            zone = self.config.conflict_zone
+            zone = self._zone
             mine = paths.zone_entry_time(car_points, zone)
             theirs = math.inf if entry is None else paths.zone_entry_time(entry.points, zone)
             return (mine, car.vehicle) > (theirs, other.vehicle)
@@ -393,7 +416,9 @@ class RsuCore:
                 query = plan.points
             else:
                 query = path.points
-            found = self.table.conflicts(car.vehicle, query, now, cfg.t_free_s)
+            # A slowing car is released only when it is clear by a margin (hysteresis).
+            margins = self._margins if car.mode == Mode.C_SLOW else (0.0, 0.0)
+            found = self.table.conflicts(car.vehicle, query, now, cfg.t_free_s, (), *margins)
             horizon = now + cfg.t_collision_s
             near = [c for c in found if c.time <= horizon]
             if found:
@@ -406,7 +431,7 @@ class RsuCore:
                     break
             if yields:
                 event = Event.CONFLICT
-            elif not found and self._approaching(car, path, now):
+            elif not found and self._approaching(car, path, now) and self._clear(car, query, now):
                 event = Event.FREE_APPROACHING
             else:
                 event = Event.NO_CONFLICT
@@ -487,10 +512,15 @@ class RsuCore:
         """Compute (unless given), reserve and send the car's coordinated path."""
         if plan is None:
             plan = self.velocity.plan(car.vehicle, path, car.mode, now, self.table)
-        self._reserve(now, car, plan.points)
+        points, speeds = plan.points, plan.speeds
+        cap = self.config.max_points
+        if cap is not None and points.shape[0] > cap:
+            # evenly thinned, first and last kept: same path, fewer points (fits a datagram)
+            keep = np.unique(np.round(np.linspace(0, points.shape[0] - 1, cap)).astype(np.int64))
+            points, speeds = points[keep], speeds[keep]
+            self.counters["thinned_paths"] += 1
+        self._reserve(now, car, points)
         self.counters["coordinated_paths"] += 1
         self.counters[f"plan_{plan.kind}"] += 1
-        message = CoordinatedPath(
-            self._header(now), car.vehicle, car.mode, plan.points, plan.speeds
-        )
+        message = CoordinatedPath(self._header(now), car.vehicle, car.mode, points, speeds)
         return Outgoing(car.vehicle, message)

@@ -39,6 +39,13 @@ Which path is judged, and who yields (our reading of the paper, where it is sile
   mode conflict within ``T_collision``, the other one gets ``CONFLICT`` (is put
   into ``C_SLOW``), whoever sent the path. Between two ``C_FAST`` cars the
   later arriver at the zone (larger zone entry time; tie: larger id) yields.
+* Hysteresis (ours): conflicts are judged on sampled points, so a pair at the
+  edge of ``D_margin`` / headway can appear and vanish as a path is re-sent
+  with its points 0.1 s further on. To keep that from flipping modes 10 times
+  a second, a car is judged ``FREE_APPROACHING``, and a ``C_SLOW`` car is
+  released, only when its path is clear even with ``release_margin_m`` more
+  room and ``release_margin_s`` more headway (defaults 0.6 m, 0.2 s: more
+  than the resampling of a 120-point path at ``V_max`` can move a point).
 * Commands are soft state: the RSU repeats a pending initiation or termination
   every ``command_repeat_s`` until the car's broadcast future path shows the
   commanded mode; until then, that car's future paths are not used for

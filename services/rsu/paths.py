@@ -17,6 +17,7 @@ much less than the width of an intersection box.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
@@ -72,21 +73,53 @@ def polygon_centroid(polygon: FloatArray) -> tuple[float, float]:
     return cx, cy
 
 
-def inside_convex(xy: npt.ArrayLike, polygon: FloatArray) -> BoolArray:
+@dataclass(frozen=True, slots=True, eq=False)
+class ConvexZone:
+    """A validated convex conflict zone with its edges precomputed (counter-clockwise)."""
+
+    vertices: FloatArray  # (K, 2) [m], counter-clockwise
+    edges: FloatArray  # (K, 2): vertex k+1 - vertex k
+    centroid: tuple[float, float]
+    tol: float
+
+    @classmethod
+    def of(cls, polygon: ConvexZone | npt.ArrayLike) -> ConvexZone:
+        """Validate ``polygon`` (either orientation); raise ValueError if it is no convex zone."""
+        if isinstance(polygon, ConvexZone):
+            return polygon
+        arr = np.array(convex_polygon(polygon))
+        if polygon_area(arr) < 0:
+            arr = arr[::-1].copy()
+        edges = np.roll(arr, -1, axis=0) - arr
+        arr.flags.writeable = False
+        edges.flags.writeable = False
+        tol = _EPS * max(1.0, float(np.abs(arr).max()))
+        return cls(arr, edges, polygon_centroid(arr), tol)
+
+    def contains(self, xy: npt.ArrayLike) -> BoolArray:
+        """Which points (M, 2+) lie inside or on the edge (vectorised)."""
+        pts = np.asarray(xy, dtype=np.float64)
+        if pts.ndim == 1:
+            pts = pts.reshape(1, -1)
+        v, e = self.vertices, self.edges
+        cross = e[None, :, 0] * (pts[:, 1:2] - v[None, :, 1]) - e[None, :, 1] * (
+            pts[:, 0:1] - v[None, :, 0]
+        )
+        result: BoolArray = np.all(cross >= -self.tol, axis=1)
+        return result
+
+    def contains_point(self, x: float, y: float) -> bool:
+        """One point inside or on the edge (plain floats: cheaper than numpy for one point)."""
+        tol = self.tol
+        for (vx, vy), (ex, ey) in zip(self.vertices.tolist(), self.edges.tolist(), strict=True):
+            if ex * (y - vy) - ey * (x - vx) < -tol:
+                return False
+        return True
+
+
+def inside_convex(xy: npt.ArrayLike, polygon: ConvexZone | npt.ArrayLike) -> BoolArray:
     """Which points (M, 2+) lie inside or on the edge of a convex polygon (K, 2)."""
-    pts = np.asarray(xy, dtype=np.float64)
-    if pts.ndim == 1:
-        pts = pts.reshape(1, -1)
-    px = pts[:, 0:1]
-    py = pts[:, 1:2]
-    ax = polygon[:, 0][None, :]
-    ay = polygon[:, 1][None, :]
-    ex = (np.roll(polygon[:, 0], -1) - polygon[:, 0])[None, :]
-    ey = (np.roll(polygon[:, 1], -1) - polygon[:, 1])[None, :]
-    cross = ex * (py - ay) - ey * (px - ax)
-    tol = _EPS * max(1.0, float(np.abs(polygon).max()))
-    result: BoolArray = np.all(cross >= -tol, axis=1) | np.all(cross <= tol, axis=1)
-    return result
+    return ConvexZone.of(polygon).contains(xy)
 
 
 def segment_lengths(points: FloatArray) -> FloatArray:
@@ -145,14 +178,14 @@ def retime(points: FloatArray, speeds: FloatArray, t0: float) -> FloatArray:
     return out
 
 
-def zone_span(points: FloatArray, polygon: FloatArray) -> tuple[int, int] | None:
+def zone_span(points: FloatArray, polygon: ConvexZone | npt.ArrayLike) -> tuple[int, int] | None:
     """(first index inside the zone, first index after leaving it again) or None.
 
     The exit index is N when the path ends inside the zone.
     """
     if points.shape[0] == 0:
         return None
-    inside = inside_convex(points[:, :2], polygon)
+    inside = ConvexZone.of(polygon).contains(points[:, :2])
     idx = np.flatnonzero(inside)
     if idx.size == 0:
         return None
@@ -162,7 +195,7 @@ def zone_span(points: FloatArray, polygon: FloatArray) -> tuple[int, int] | None
     return first, exit_index
 
 
-def zone_entry_time(points: FloatArray, polygon: FloatArray) -> float:
+def zone_entry_time(points: FloatArray, polygon: ConvexZone | npt.ArrayLike) -> float:
     """Pass time of the first point inside the zone [s]; ``inf`` if the path never enters."""
     span = zone_span(points, polygon)
     if span is None:
@@ -171,27 +204,50 @@ def zone_entry_time(points: FloatArray, polygon: FloatArray) -> float:
 
 
 def is_leaving(
-    x: float, y: float, heading: float, polygon: FloatArray, centre: tuple[float, float]
+    x: float,
+    y: float,
+    heading: float,
+    polygon: ConvexZone | npt.ArrayLike,
+    centre: tuple[float, float] | None = None,
 ) -> bool:
-    """The car has passed the conflict zone: outside it and heading away from its centre."""
-    if bool(inside_convex(np.array([[x, y]]), polygon)[0]):
+    """The car has passed the conflict zone: outside it and heading away from its centre.
+
+    ``centre`` defaults to the zone's centroid.
+    """
+    zone = ConvexZone.of(polygon)
+    if zone.contains_point(x, y):
         return False
-    return math.cos(heading) * (x - centre[0]) + math.sin(heading) * (y - centre[1]) > 0.0
+    cx, cy = zone.centroid if centre is None else centre
+    return math.cos(heading) * (x - cx) + math.sin(heading) * (y - cy) > 0.0
 
 
 def is_approaching(
     x: float,
     y: float,
     points: FloatArray,
-    polygon: FloatArray,
+    polygon: ConvexZone | npt.ArrayLike,
     rsu_centre: tuple[float, float],
     coverage_m: float,
     now: float,
     horizon_s: float,
 ) -> bool:
-    """In coverage, not yet in the zone, and the path enters it within ``horizon_s`` of ``now``."""
+    """In coverage, not yet in the zone, and heading for it.
+
+    Heading for it: the path enters the zone within ``horizon_s`` of ``now``,
+    or it ends closer to the zone than the car is now. The second case is a
+    car whose own plan stops short of the zone (blind-corner caution: it will
+    not enter until it sees the crossing road, which the RSU sees for it).
+    """
     if math.hypot(x - rsu_centre[0], y - rsu_centre[1]) > coverage_m:
         return False
-    if bool(inside_convex(np.array([[x, y]]), polygon)[0]):
+    zone = ConvexZone.of(polygon)
+    if zone.contains_point(x, y):
         return False
-    return zone_entry_time(points, polygon) <= now + horizon_s
+    if zone_entry_time(points, zone) <= now + horizon_s:
+        return True
+    if points.shape[0] == 0:
+        return False
+    cx, cy = zone.centroid
+    here = math.hypot(x - cx, y - cy)
+    there = math.hypot(float(points[-1, 0]) - cx, float(points[-1, 1]) - cy)
+    return there < here - 0.5

@@ -20,7 +20,7 @@ candidates (the exact check removes them), it never loses a conflict.
 from __future__ import annotations
 
 import math
-from collections.abc import Collection, Iterator
+from collections.abc import Collection, Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -34,10 +34,16 @@ _MASK = (1 << _AXIS_BITS) - 1
 _CELL_SLACK = 1.0 + 1e-9
 _MAX_ABS = 1e9  # largest |x|, |y| [m] or |t| [s] accepted
 
-_OFFSETS = np.array(
-    [(dx, dy, dt) for dx in (-1, 0, 1) for dy in (-1, 0, 1) for dt in (-1, 0, 1)],
-    dtype=np.int64,
-)
+
+def _offsets(rxy: int, rt: int) -> IntArray:
+    """Cell offsets of the (2 rxy + 1)^2 x (2 rt + 1) neighbourhood."""
+    span_xy, span_t = range(-rxy, rxy + 1), range(-rt, rt + 1)
+    return np.array(
+        [(dx, dy, dt) for dx in span_xy for dy in span_xy for dt in span_t], dtype=np.int64
+    )
+
+
+_OFFSETS = {(1, 1): _offsets(1, 1)}
 
 
 @dataclass(frozen=True, slots=True)
@@ -69,6 +75,7 @@ class Entry:
     width: float
     updated: float
     keys: IntArray
+    by_time: FloatArray  # the points sorted by pass time (stable), for the exact check
 
     def expires_at(self, expiry_s: float) -> float:
         return self.updated + expiry_s
@@ -82,16 +89,35 @@ def _pack(ix: IntArray, iy: IntArray, it: IntArray) -> IntArray:
 def _pair_conflict(
     vehicle: str, q: FloatArray, o: FloatArray, d2: float, headway: float
 ) -> Conflict | None:
-    """Exact check of two windowed point sets; the one predicate both queries share."""
-    if q.shape[0] == 0 or o.shape[0] == 0:
+    """Exact check of two windowed point sets; the one predicate both queries share.
+
+    ``o`` must be sorted by time: only pairs less than one headway apart are
+    enumerated (``searchsorted``, the bounds widened by far more than float
+    rounding so that no pair is dropped), then tested with the exact predicate
+    ``dx² + dy² <= d2 and |dt| < headway``.
+    """
+    n_q, n_o = q.shape[0], o.shape[0]
+    if n_q == 0 or n_o == 0:
         return None
-    dx = q[:, 0:1] - o[None, :, 0]
-    dy = q[:, 1:2] - o[None, :, 1]
-    dt = np.abs(q[:, 2:3] - o[None, :, 2])
-    mask = ((dx * dx + dy * dy) <= d2) & (dt < headway)
-    if not mask.any():
+    qt = q[:, 2]
+    ot = o[:, 2]
+    reach = headway + 1e-12 * (np.abs(qt) + headway)
+    lo = np.searchsorted(ot, qt - reach, side="left")
+    hi = np.searchsorted(ot, qt + reach, side="right")
+    counts = hi - lo
+    total = int(counts.sum())
+    if total == 0:
         return None
-    qi, oj = np.nonzero(mask)
+    qi = np.repeat(np.arange(n_q), counts)
+    starts = np.cumsum(counts) - counts
+    oj = lo[qi] + (np.arange(total) - starts[qi])
+    dx = q[qi, 0] - o[oj, 0]
+    dy = q[qi, 1] - o[oj, 1]
+    hit = ((dx * dx + dy * dy) <= d2) & (np.abs(q[qi, 2] - o[oj, 2]) < headway)
+    if not hit.any():
+        return None
+    qi = qi[hit]
+    oj = oj[hit]
     tq = q[qi, 2]
     to = o[oj, 2]
     first = int(qi.min())
@@ -187,7 +213,8 @@ class ReservationTable:
                 index[key] = {vehicle}
             else:
                 cell.add(vehicle)
-        self._entries[vehicle] = Entry(vehicle, pts, length, width, float(now), keys)
+        by_time = pts[np.argsort(pts[:, 2], kind="stable")] if pts.shape[0] else pts
+        self._entries[vehicle] = Entry(vehicle, pts, length, width, float(now), keys, by_time)
 
     def touch(self, vehicle: str, now: float) -> bool:
         """Refresh a car's entry without changing its path (the car is alive)."""
@@ -226,10 +253,22 @@ class ReservationTable:
 
     # -- queries --------------------------------------------------------------------------
 
+    def _limits(self, margin_m: float, margin_s: float) -> tuple[float, float]:
+        if not (0.0 <= margin_m < math.inf and 0.0 <= margin_s < math.inf):
+            raise ValueError("margins must be finite and >= 0")
+        d = self.d_margin_m + margin_m
+        return d * d, self.headway_s + margin_s
+
     def _window(self, points: FloatArray, now: float, horizon_s: float) -> FloatArray:
         t = points[:, 2]
         windowed: FloatArray = points[(t >= now) & (t <= now + horizon_s)]
         return windowed
+
+    def _window_sorted(self, entry: Entry, now: float, horizon_s: float) -> FloatArray:
+        t = entry.by_time[:, 2]
+        lo = int(np.searchsorted(t, now, side="left"))
+        hi = int(np.searchsorted(t, now + horizon_s, side="right"))
+        return entry.by_time[lo:hi]
 
     def _others(
         self, vehicle: str, now: float, exclude: Collection[str], candidates: Collection[str]
@@ -244,17 +283,28 @@ class ReservationTable:
         out.sort(key=lambda e: e.vehicle)
         return out
 
-    def candidates(self, points: FloatArray) -> set[str]:
-        """Cars with a point in the 3x3x3 cell neighbourhood of any of ``points``."""
+    def candidates(
+        self, points: FloatArray, margin_m: float = 0.0, margin_s: float = 0.0
+    ) -> set[str]:
+        """Cars with a point in the cell neighbourhood of any of ``points``.
+
+        The neighbourhood is 3x3x3 cells without margins; wider when the
+        margins make the reach exceed one cell.
+        """
         if points.shape[0] == 0 or not self._index:
             return set()
+        rxy = max(1, math.ceil((self.d_margin_m + margin_m) / self._cell_xy))
+        rt = max(1, math.ceil((self.headway_s + margin_s) / self._cell_t))
+        offsets = _OFFSETS.get((rxy, rt))
+        if offsets is None:
+            offsets = _OFFSETS.setdefault((rxy, rt), _offsets(rxy, rt))
         ix, iy, it = self._cells(points)
         _, first = np.unique(_pack(ix, iy, it), return_index=True)
         ix, iy, it = ix[first], iy[first], it[first]
         keys = _pack(
-            ix[:, None] + _OFFSETS[None, :, 0],
-            iy[:, None] + _OFFSETS[None, :, 1],
-            it[:, None] + _OFFSETS[None, :, 2],
+            ix[:, None] + offsets[None, :, 0],
+            iy[:, None] + offsets[None, :, 1],
+            it[:, None] + offsets[None, :, 2],
         )
         found: set[str] = set()
         get = self._index.get
@@ -271,22 +321,54 @@ class ReservationTable:
         now: float,
         horizon_s: float,
         exclude: Collection[str] = (),
+        margin_m: float = 0.0,
+        margin_s: float = 0.0,
     ) -> list[Conflict]:
-        """Conflicts of ``vehicle``'s ``points`` with every other live entry, sorted by time."""
-        q = self._window(_checked(points), now, horizon_s)
-        if q.shape[0] == 0:
-            return []
-        others = self._others(vehicle, now, exclude, self.candidates(q))
-        if not others:
-            return []
-        found = []
-        for entry in others:
-            o = self._window(entry.points, now, horizon_s)
-            conflict = _pair_conflict(entry.vehicle, q, o, self._d2, self.headway_s)
-            if conflict is not None:
-                found.append(conflict)
+        """Conflicts of ``vehicle``'s ``points`` with every other live entry, sorted by time.
+
+        ``margin_m`` / ``margin_s`` (>= 0) widen ``d_margin`` / ``headway`` for this
+        query only: a conflict "by a margin" (used for hysteresis).
+        """
+        found = list(self._scan(vehicle, points, now, horizon_s, exclude, margin_m, margin_s, ()))
         found.sort(key=lambda c: (c.time, c.vehicle))
         return found
+
+    def first_conflict(
+        self,
+        vehicle: str,
+        points: npt.ArrayLike,
+        now: float,
+        horizon_s: float,
+        exclude: Collection[str] = (),
+        prefer: Sequence[str] = (),
+    ) -> Conflict | None:
+        """Any one conflict (checking the cars in ``prefer`` first), or None: cheaper than all."""
+        return next(self._scan(vehicle, points, now, horizon_s, exclude, 0.0, 0.0, prefer), None)
+
+    def _scan(
+        self,
+        vehicle: str,
+        points: npt.ArrayLike,
+        now: float,
+        horizon_s: float,
+        exclude: Collection[str],
+        margin_m: float,
+        margin_s: float,
+        prefer: Sequence[str],
+    ) -> Iterator[Conflict]:
+        q = self._window(_checked(points), now, horizon_s)
+        if q.shape[0] == 0:
+            return
+        d2, headway = self._limits(margin_m, margin_s)
+        others = self._others(vehicle, now, exclude, self.candidates(q, margin_m, margin_s))
+        if prefer:
+            rank = {v: i for i, v in enumerate(prefer)}
+            others.sort(key=lambda e: rank.get(e.vehicle, len(rank)))
+        for entry in others:
+            o = self._window_sorted(entry, now, horizon_s)
+            conflict = _pair_conflict(entry.vehicle, q, o, d2, headway)
+            if conflict is not None:
+                yield conflict
 
     def naive_conflicts(
         self,
@@ -295,13 +377,16 @@ class ReservationTable:
         now: float,
         horizon_s: float,
         exclude: Collection[str] = (),
+        margin_m: float = 0.0,
+        margin_s: float = 0.0,
     ) -> list[Conflict]:
         """Same answer as ``conflicts`` by brute force: every point pair of every entry."""
         q = self._window(_checked(points), now, horizon_s)
+        d2, headway = self._limits(margin_m, margin_s)
         found = []
         for entry in self._others(vehicle, now, exclude, list(self._entries)):
-            o = self._window(entry.points, now, horizon_s)
-            conflict = _pair_conflict(entry.vehicle, q, o, self._d2, self.headway_s)
+            o = self._window_sorted(entry, now, horizon_s)
+            conflict = _pair_conflict(entry.vehicle, q, o, d2, headway)
             if conflict is not None:
                 found.append(conflict)
         found.sort(key=lambda c: (c.time, c.vehicle))

@@ -65,6 +65,7 @@ _SAME_POINT_M = 1e-6
 _MAX_HOLDS = 20
 _VC_GRID = 24
 _VC_ROUNDS = 3
+_COARSE_STEP_S = 0.5
 
 
 class Policy(StrEnum):
@@ -215,6 +216,7 @@ class VelocityManager:
     def __init__(self, config: RsuConfig) -> None:
         self.config = config
         self.policy = Policy(config.policy)
+        self.zone = paths.ConvexZone.of(config.conflict_zone)
 
     # -- public ---------------------------------------------------------------------------
 
@@ -264,7 +266,7 @@ class VelocityManager:
         """``V_max`` up to the zone exit plus one car length, then the path's own speeds."""
         cfg = self.config
         cap = np.full(tr.s.shape[0], cfg.v_max_mps)
-        span = paths.zone_span(tr.xy, cfg.conflict_zone)
+        span = paths.zone_span(tr.xy, self.zone)
         if span is not None and span[1] < tr.s.shape[0]:
             after = tr.s > tr.s[span[1]] + length
             cap[after] = tr.v_ap[after]
@@ -300,14 +302,39 @@ class VelocityManager:
         fastest = self._cruise(tr, entry, env_after, cfg.v_max_mps)
         t_fast = tr.t0 + float(np.sum(_segment_times(tr.d[: entry + 1], fastest[: entry + 1])))
         step = cfg.slot_step_s
+        coarse = max(1, round(_COARSE_STEP_S / step))  # fine steps per coarse step
         count = math.floor(cfg.t_free_s / step + 1e-9)
-        for i in range(count + 1):
-            target = t_fast + i * step
-            plan = self._meet(tr, entry, env_after, cap, length, target)
+        culprit: list[str] = []
+        impossible = False
+
+        def attempt(i: int) -> SpeedPlan | None:
+            """The plan entering ``i`` steps late if it is conflict-free, else None."""
+            nonlocal impossible
+            plan = self._meet(tr, entry, env_after, cap, length, t_fast + i * step)
             if plan is None:
-                break
-            if not table.conflicts(vehicle, plan.points, now, cfg.t_free_s, exclude):
+                impossible = True  # it can no longer wait that long: nor any longer
+                return None
+            hit = table.first_conflict(vehicle, plan.points, now, cfg.t_free_s, exclude, culprit)
+            if hit is None:
                 return plan
+            culprit[:] = [hit.vehicle]
+            return None
+
+        # Coarse to fine: a gap a yielding car fits in is wider than the coarse step.
+        failed = -1
+        for i in range(0, count + 1, coarse):
+            found = attempt(i)
+            if found is None and not impossible:
+                failed = i
+                continue
+            impossible = False
+            for j in range(failed + 1, i):  # the fine steps since the last failure
+                earlier = attempt(j)
+                if earlier is not None or impossible:
+                    return earlier or self._stop(tr, "slot_fallback")
+            if found is not None:
+                return found
+            break
         return self._stop(tr, "slot_fallback")
 
     def _cruise(self, tr: _Track, entry: int, env_after: FloatArray, v_c: float) -> FloatArray:

@@ -20,10 +20,10 @@ COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
     ("rsu",): ("services.rsu.daemon", "run one roadside unit daemon"),
     ("monitor",): ("services.world.monitor", "run the monitor daemon (ground truth, results)"),
     ("router",): ("services.runtime.router", "run a Zenoh router for multi-host setups"),
-    ("demo",): ("services.runtime.commands.demo", "the paper's scenario in three modes, real daemons"),
+    ("demo",): ("services.runtime.commands.demo", "the paper's scenario in 3 modes, real daemons"),
     ("bench", "codec"): ("services.runtime.bench.codec", "codec micro-benchmark against JSON"),
     ("bench", "rsu"): ("services.runtime.bench.rsu", "RSU conflict-check benchmark against naive"),
-    ("experiment", "paper"): ("services.runtime.experiments.paper", "the paper's table and figures"),
+    ("experiment", "paper"): ("services.runtime.experiments.paper", "the paper's table, figures"),
     ("experiment", "loss-sweep"): (
         "services.runtime.experiments.loss_sweep",
         "passing time and safety against packet loss, in the lab",
@@ -57,11 +57,11 @@ def build_parser() -> argparse.ArgumentParser:
                     dest=f"{words[0]}_command", required=True, metavar="SUBCOMMAND"
                 )
             sub = groups[words[0]].add_parser(words[1], help=help_text, description=help_text)
-        configure = getattr(module, "configure")
+        configure = module.configure
         if len(words) > 1 and hasattr(module, f"configure_{words[1].replace('-', '_')}"):
             configure = getattr(module, f"configure_{words[1].replace('-', '_')}")
         configure(sub)
-        run = getattr(module, "run")
+        run = module.run
         if len(words) > 1 and hasattr(module, f"run_{words[1].replace('-', '_')}"):
             run = getattr(module, f"run_{words[1].replace('-', '_')}")
         sub.set_defaults(_run=run)

@@ -226,6 +226,13 @@ class VehicleAgent:
         if c.mode is Mode.AUTO:
             plan = autonomous
         else:
+            # the autonomous path for the RSU: this car's own plan to its goal, without the
+            # blind-corner caution and the yield stops that the RSU's coordination replaces
+            # (its positions must run through the intersection for a coordinated path to be
+            # built on them)
+            autonomous = self.planner.plan(
+                now, ego, sensed, {}, Coordination(lift_caution=True, skip_yield=True)
+            )
             coordination = Coordination(
                 lift_caution=c.mode is Mode.C_FAST,
                 target_s=c.target_s,

@@ -54,7 +54,6 @@ from services.vehicle.profile import (
     grid,
     pass_times,
     stop_cap,
-    track_envelope,
 )
 from services.world.geometry import Polyline, footprint, visible_mask
 from services.world.kinematics import Limits, TruthState
@@ -191,9 +190,12 @@ class AutonomousPlanner:
         constraints: list[_Constraint] = [_Constraint(Reason.CRUISE, base)]
         constraints.append(_Constraint(Reason.GOAL, stop_cap(s, self.goal_s, lim.decel_comfort)))
         if coordination.target_v is not None and coordination.target_s is not None:
+            # the coordinated speeds are reached early (as caps) but never by braking harder
+            # than comfortably from the current speed (the paper's smooth C_SLOW deceleration)
             target = np.interp(s, coordination.target_s, coordination.target_v)
-            env = track_envelope(target, v0, DS, lim.accel, lim.decel_comfort)
-            constraints.append(_Constraint(Reason.COORDINATED, np.maximum(env, 0.0)))
+            early = backward_pass(target, DS, lim.decel_comfort)
+            smooth = np.sqrt(np.clip(v0 * v0 - 2.0 * lim.decel_comfort * (s - s0), 0.0, None))
+            constraints.append(_Constraint(Reason.COORDINATED, np.maximum(early, smooth)))
         for crossing in self._crossings_ahead(s0):
             if not coordination.lift_caution and not self._clear_view(now, ego, crossing):
                 cap = self._stop_line_cap(s, s0, v0, crossing)

@@ -148,16 +148,26 @@ _path = st.lists(_point, min_size=0, max_size=12).map(
     query=_path,
     now=st.sampled_from([0.0, 0.5, 1.0, 2.25]),
     horizon=st.sampled_from([1.0, 2.5, 5.0, 10.0]),
+    margins=st.sampled_from([(0.0, 0.0), (0.6, 0.2), (D / 2, H / 2), (3.0, 1.5)]),
 )
 def test_indexed_query_equals_brute_force(
-    others: list[np.ndarray], query: np.ndarray, now: float, horizon: float
+    others: list[np.ndarray],
+    query: np.ndarray,
+    now: float,
+    horizon: float,
+    margins: tuple[float, float],
 ) -> None:
     table = ReservationTable(D, H, 0.5)
     for i, pts in enumerate(others):
         table.update(f"v{i}", pts, now)
-    fast = table.conflicts("q", query, now, horizon)
-    slow = table.naive_conflicts("q", query, now, horizon)
+    fast = table.conflicts("q", query, now, horizon, (), *margins)
+    slow = table.naive_conflicts("q", query, now, horizon, (), *margins)
     assert fast == slow
+    if margins != (0.0, 0.0):
+        return
+    first = table.first_conflict("q", query, now, horizon, (), prefer=[f"v{len(others) - 1}"])
+    assert (first is None) == (not fast)
+    assert first is None or first in fast
     # and the brute force itself is right: recompute pair by pair, in plain Python
     expected: dict[str, bool] = {}
     for i, pts in enumerate(others):

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from protocol.messages import AutonomousPath, Header, Mode
-from services.rsu import paths
+from services.rsu import paths, velocity
 from services.rsu.core import RsuConfig
 from services.rsu.reservation import ReservationTable
 from services.rsu.velocity import Policy, VelocityManager
@@ -22,7 +22,12 @@ def config(policy: Policy = Policy.PAPER) -> RsuConfig:
 
 
 def straight(
-    start: tuple[float, float], heading: float, v: float, t0: float, n: int = 120, horizon: float = 10
+    start: tuple[float, float],
+    heading: float,
+    v: float,
+    t0: float,
+    n: int = 120,
+    horizon: float = 10,
 ) -> np.ndarray:
     t = t0 + np.linspace(0.0, horizon, n)
     s = v * (t - t0)
@@ -86,8 +91,8 @@ def test_zone_helpers() -> None:
     assert span is not None
     assert east[span[0], 0] == pytest.approx(-3.0) and east[span[1], 0] == pytest.approx(4.0)
     assert paths.zone_entry_time(east, zone) == pytest.approx(1.7)
-    assert paths.zone_span(east + [0, 10, 0], zone) is None
-    assert paths.zone_entry_time(east + [0, 10, 0], zone) == math.inf
+    assert paths.zone_span(east + np.array([0.0, 10.0, 0.0]), zone) is None
+    assert paths.zone_entry_time(east + np.array([0.0, 10.0, 0.0]), zone) == math.inf
     assert paths.polygon_centroid(zone + 5.0) == pytest.approx((5.0, 5.0))
 
 
@@ -114,9 +119,14 @@ def test_leaving_and_approaching() -> None:
     assert not paths.is_leaving(5.0, -1.75, math.pi, zone, c)  # westbound: approaching
     east = straight((-100.0, -1.75), 0.0, VMAX, 0.0)
     assert paths.is_approaching(-100.0, -1.75, east, zone, c, 150.0, 0.0, 10.0)
-    assert not paths.is_approaching(-100.0, -1.75, east, zone, c, 150.0, 0.0, 6.0)  # too far
+    # entering beyond the horizon, but heading for the zone (a cautious plan ending short of it)
+    assert paths.is_approaching(-100.0, -1.75, east, zone, c, 150.0, 0.0, 6.0)
+    away = straight((10.0, -1.75), 0.0, VMAX, 0.0)
+    assert not paths.is_approaching(10.0, -1.75, away, zone, c, 150.0, 0.0, 10.0)
     assert not paths.is_approaching(-100.0, -1.75, east, zone, c, 90.0, 0.0, 10.0)  # coverage
-    assert not paths.is_approaching(0.0, -1.75, east + [100, 0, 0], zone, c, 150.0, 0.0, 10.0)
+    assert not paths.is_approaching(
+        0.0, -1.75, east + np.array([100.0, 0.0, 0.0]), zone, c, 150.0, 0.0, 10.0
+    )
 
 
 # -- paper policy ----------------------------------------------------------------------------
@@ -182,7 +192,8 @@ def test_paper_fast_is_vmax_through_the_zone_then_own_speeds() -> None:
 def test_paper_fast_keeps_the_stop_at_the_end_of_an_autonomous_path() -> None:
     vm = VelocityManager(config())
     path = straight((1.75, -20.0), math.pi / 2, 5.0, 0.0, n=60, horizon=6.0)
-    held = np.vstack([path, np.column_stack([np.repeat(path[-1:, :2], 5, 0), path[-1, 2] + 1 + np.arange(5)])])
+    hold = np.column_stack([np.repeat(path[-1:, :2], 5, 0), path[-1, 2] + 1 + np.arange(5)])
+    held = np.vstack([path, hold])
     plan = vm.plan("B", ap("B", held, 5.0, math.pi / 2), Mode.C_FAST, 0.0, ReservationTable())
     assert plan.speeds[-1] == 0.0
     assert np.all(plan.points[-1, :2] == path[-1, :2])
@@ -223,22 +234,18 @@ def test_crossing_paper_stops_and_slot_delays_just_enough(v_b: float, gap: float
     assert slot.entry_time > own_entry
     assert slot.entry_time - own_entry < 2.0
     # and the earliest such slot: one search step earlier still conflicts
-    tr_ap = b
-    earlier = vm._meet(  # one step earlier
-        *_meet_args(vm, tr_ap), slot.entry_time - config().slot_step_s
-    )
+    earlier = _meet(vm, b, slot.entry_time - config().slot_step_s)
     assert earlier is not None
     assert table.naive_conflicts("B", earlier.points, 0.0, 10.0) != []
 
 
-def _meet_args(vm: VelocityManager, path: AutonomousPath) -> tuple:  # type: ignore[type-arg]
-    from services.rsu import velocity
-
+def _meet(vm: VelocityManager, path: AutonomousPath, target: float) -> velocity.SpeedPlan | None:
+    """The slot search's inner step: the fastest profile entering the zone at ``target``."""
     tr = velocity._track(path, VMAX, 0.0, 10.0)
     cap, entry = vm._fast_caps(tr, path.length)
     assert entry is not None
     env = velocity._envelope(tr.d, cap, 2.0)
-    return tr, entry, env, cap, path.length
+    return vm._meet(tr, entry, env, cap, path.length, target)
 
 
 def test_slot_stops_before_the_zone_when_the_wait_is_long() -> None:

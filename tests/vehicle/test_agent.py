@@ -1,0 +1,122 @@
+"""The vehicle agent's coordinated mode, alone and paired in memory with a real RSU core."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from protocol import decode, encode
+from protocol.keys import Stream
+from protocol.messages import (
+    AutonomousPath,
+    Command,
+    CoordinatedPath,
+    FuturePath,
+    Header,
+    Mode,
+    ModeCommand,
+)
+from services.rsu.core import RsuCore
+from services.rsu.velocity import Policy
+from services.runtime.sim import rsu_config, vehicle_agent
+from services.vehicle.agent import VehicleAgent
+from services.vehicle.planner import Reason
+from services.world.kinematics import TruthState
+from services.world.scenario import Scenario
+
+
+def truth(sc: Scenario, vid: str, s: float, v: float, t: float) -> TruthState:
+    route = sc.vehicle_route(vid)
+    x, y = route.point_at(s)
+    return TruthState(vid, t, x, y, route.heading_at(s), v, 0.0, s, 4.5, 1.8)
+
+
+def mode(agent: VehicleAgent) -> Mode:
+    """The agent's mode, read afresh (keeps mypy from narrowing it across calls)."""
+    return agent.mode
+
+
+def command(vehicle: str, cmd: Command, mode: Mode, t: float) -> ModeCommand:
+    return ModeCommand(Header("rsu1", 1, round(t * 1e6)), vehicle, cmd, mode)
+
+
+def test_initiation_then_autonomous_paths_then_termination(paper: Scenario) -> None:
+    agent = vehicle_agent(paper, "A", v2x=True)
+    r = agent.tick(0.0, truth(paper, "A", 120.0, 13.0, 0.0), [])
+    assert [o.stream for o in r.outbound] == [Stream.FP] and r.mode is Mode.AUTO
+    agent.on_message(0.05, command("A", Command.INITIATE, Mode.C_FAST, 0.05), "rsu1")
+    assert mode(agent) is Mode.C_FAST
+    r = agent.tick(0.1, truth(paper, "A", 121.3, 13.0, 0.1), [])
+    streams = [(o.stream, o.rsu) for o in r.outbound]
+    assert streams == [(Stream.FP, None), (Stream.AP, "rsu1")]
+    fp, ap = r.outbound[0].message, r.outbound[1].message
+    assert isinstance(fp, FuturePath) and fp.mode is Mode.C_FAST
+    assert isinstance(ap, AutonomousPath)
+    # the autonomous path runs through the intersection (caution lifted for the RSU's use)
+    assert float(ap.points[:, 0].max()) > 3.5
+    agent.on_message(0.15, command("A", Command.TERMINATE, Mode.AUTO, 0.15), "rsu1")
+    r = agent.tick(0.2, truth(paper, "A", 122.6, 13.0, 0.2), [])
+    assert mode(agent) is Mode.AUTO and [o.stream for o in r.outbound] == [Stream.FP]
+
+
+def test_no_coordinated_path_for_0_3_s_falls_back(paper: Scenario) -> None:
+    agent = vehicle_agent(paper, "A", v2x=True)
+    agent.on_message(1.0, command("A", Command.INITIATE, Mode.C_SLOW, 1.0), "rsu1")
+    agent.tick(1.1, truth(paper, "A", 120.0, 13.0, 1.1), [])
+    agent.tick(1.25, truth(paper, "A", 122.0, 13.0, 1.25), [])
+    assert mode(agent) is Mode.C_SLOW
+    agent.tick(1.4, truth(paper, "A", 123.0, 13.0, 1.4), [])
+    assert mode(agent) is Mode.AUTO
+    assert agent.counters["coordinated_timeout"] == 1
+
+
+def test_coordinated_speed_zero_brakes_comfortably(paper: Scenario) -> None:
+    agent = vehicle_agent(paper, "A", v2x=True)
+    agent.on_message(0.0, command("A", Command.INITIATE, Mode.C_SLOW, 0.0), "rsu1")
+    xs = np.arange(-80.0, 40.0, 1.0)
+    pts = np.column_stack([xs, np.full_like(xs, -1.75), np.linspace(0.0, 10.0, xs.size)])
+    cp = CoordinatedPath(Header("rsu1", 2, 0), "A", Mode.C_SLOW, pts, np.zeros(xs.size))
+    agent.on_message(0.0, decode(encode(cp)), "rsu1")
+    r = agent.tick(0.1, truth(paper, "A", 120.0, 12.0, 0.1), [])
+    assert r.plan.reason is Reason.COORDINATED
+    v = r.plan.profile.v
+    # never harder than the comfortable 2 m/s² from the current 12 m/s: stops after ≥ 36 m
+    stop = r.plan.profile.stop_s()
+    assert stop is not None and stop >= 120.0 + 12.0**2 / (2 * 2.0) - 0.6
+    assert np.all(np.diff(v) <= 1e-9)
+
+
+def test_messages_for_other_cars_are_ignored(paper: Scenario) -> None:
+    agent = vehicle_agent(paper, "A", v2x=True)
+    agent.on_message(0.0, command("B", Command.INITIATE, Mode.C_SLOW, 0.0), "rsu1")
+    pts = np.array([[0.0, -1.75, 0.0], [1.0, -1.75, 0.1]])
+    agent.on_message(0.0, CoordinatedPath(Header("rsu1", 2, 0), "B", Mode.C_SLOW, pts, np.zeros(2)))
+    assert mode(agent) is Mode.AUTO
+    assert agent.counters["cmd_not_mine"] == 1 and agent.counters["cp_not_mine"] == 1
+
+
+def test_standalone_agent_sends_nothing(paper: Scenario) -> None:
+    agent = vehicle_agent(paper, "A", v2x=False)
+    agent.on_message(0.0, command("A", Command.INITIATE, Mode.C_FAST, 0.0), "rsu1")
+    r = agent.tick(0.1, truth(paper, "A", 50.0, 10.0, 0.1), [])
+    assert r.outbound == [] and mode(agent) is Mode.AUTO
+
+
+def test_pair_with_a_real_rsu_core_in_memory(paper: Scenario) -> None:
+    """One car and the RSU, every message through the codec: the free car is sped through."""
+    agent = vehicle_agent(paper, "A", v2x=True)
+    rsu = RsuCore(rsu_config(paper, "rsu1", Policy.PAPER))
+    s, v = 100.0, 12.0
+    modes = []
+    for k in range(30):
+        now = k * 0.1
+        r = agent.tick(now, truth(paper, "A", s, v, now), [])
+        for out in r.outbound:
+            for og in rsu.on_message(now, decode(encode(out.message)), out.rsu):
+                agent.on_message(now + 0.01, decode(encode(og.message)), "rsu1")
+        rsu.tick(now)
+        modes.append(mode(agent))
+        s += v * 0.1
+    assert Mode.C_FAST in modes
+    assert rsu.mode_of("A") is Mode.C_FAST
+    assert agent.counters["cp_followed"] > 10
+    assert agent.last_plan is not None and agent.last_plan.reason is not Reason.CAUTION
