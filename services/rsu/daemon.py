@@ -51,6 +51,7 @@ from services.runtime.config import (
 )
 from services.runtime.control import StartRun
 from services.runtime.daemon_base import (
+    END_MARGIN_S,
     ActorDaemon,
     load_daemon_config,
     load_daemon_scenario,
@@ -146,7 +147,7 @@ class RsuDaemon(ActorDaemon):
         self.reported = {}
         self.core = core
         dt = 1.0 / sc.params.planning_hz
-        limit = start.max_sim_s + 30.0
+        limit = start.max_sim_s + END_MARGIN_S
         step = 0
         while True:
             now = step * dt

@@ -218,6 +218,7 @@ class DaemonShell:
         token, self._token = self._token, None
         if token is not None:
             token.close()
+        self._opened = False
         self.transport.close()
 
     # ------------------------------------------------------------------ runs

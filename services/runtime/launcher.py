@@ -458,8 +458,9 @@ def run(args: argparse.Namespace) -> int:
         if child.node == launcher.monitor and result is not None:
             continue  # its result was printed above
         rc = child.process.returncode
+        tail = _tail(child.log_path)
         print(
-            f"--- {child.node} (exit {rc}), last lines of {child.log_path}:\n{_tail(child.log_path)}",
+            f"--- {child.node} (exit {rc}), last lines of {child.log_path}:\n{tail}",
             file=sys.stderr,
         )
     if launcher.interrupted:

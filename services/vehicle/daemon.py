@@ -62,6 +62,7 @@ from services.runtime.control import (
     truth_key,
 )
 from services.runtime.daemon_base import (
+    END_MARGIN_S,
     ActorDaemon,
     load_daemon_config,
     load_daemon_scenario,
@@ -187,7 +188,7 @@ class VehicleDaemon(ActorDaemon):
         reason = Reason.WAITING.value
         fp_key = keyexpr.future_path(me, prefix=self.prefix)
         my_truth_key = truth_key(me, prefix=self.prefix)
-        limit = start.max_sim_s + 30.0
+        limit = start.max_sim_s + END_MARGIN_S
         step = 0
         try:
             while True:

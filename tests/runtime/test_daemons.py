@@ -122,8 +122,9 @@ def future_path(sender: str, t: float, seq: int = 1) -> FuturePath:
     pts = np.column_stack(
         [np.linspace(-100.0, -80.0, 20), np.full(20, -1.75), t + np.linspace(0.0, 2.0, 20)]
     )
-    return FuturePath(Header(sender, seq, round(t * 1e6)), -100.0, -1.75, 10.0, 0.0, 4.5, 1.8,
-                      Mode.AUTO, pts)
+    return FuturePath(
+        Header(sender, seq, round(t * 1e6)), -100.0, -1.75, 10.0, 0.0, 4.5, 1.8, Mode.AUTO, pts
+    )
 
 
 # --------------------------------------------------------------------------- control codecs
@@ -207,8 +208,9 @@ def test_bad_truth_and_stats_are_refused() -> None:
     with pytest.raises(PlumbingError, match="snapshot"):
         decode_stats(_packed({"v": 1, "type": "stats", "node": "A", "snapshot": {"x": 1}}))
     with pytest.raises(PlumbingError, match="final"):
-        decode_stats(_packed({"v": 1, "type": "stats", "node": "A", "final": 1,
-                              "snapshot": {"streams": {}}}))
+        decode_stats(
+            _packed({"v": 1, "type": "stats", "node": "A", "final": 1, "snapshot": {"streams": {}}})
+        )
 
 
 def test_plumbing_keys() -> None:
@@ -234,8 +236,9 @@ class Recorder:
 
 async def test_shell_counts_garbage_oversized_spoofed_and_stale() -> None:
     bus = MemoryBus()
-    shell = DaemonShell(config(VehicleDaemonConfig, node_id="B", scenario=str(PAPER)), "test",
-                        MemoryTransport(bus))
+    shell = DaemonShell(
+        config(VehicleDaemonConfig, node_id="B", scenario=str(PAPER)), "test", MemoryTransport(bus)
+    )
     await shell.open()
     rec = Recorder()
     shell.subscribe_v2x(keyexpr.all_future_paths(), Stream.FP, rec, ignore_vehicle="B")
@@ -280,8 +283,9 @@ async def test_shell_counts_garbage_oversized_spoofed_and_stale() -> None:
 
 async def test_a_failing_handler_does_not_escape() -> None:
     bus = MemoryBus()
-    shell = DaemonShell(config(VehicleDaemonConfig, node_id="B", scenario=str(PAPER)), "test",
-                        MemoryTransport(bus))
+    shell = DaemonShell(
+        config(VehicleDaemonConfig, node_id="B", scenario=str(PAPER)), "test", MemoryTransport(bus)
+    )
     await shell.open()
     calls: list[int] = []
 
@@ -301,8 +305,9 @@ async def test_a_failing_handler_does_not_escape() -> None:
 
 async def test_publish_counts_encoded_bytes_and_final_report() -> None:
     bus = MemoryBus()
-    shell = DaemonShell(config(VehicleDaemonConfig, node_id="A", scenario=str(PAPER)), "test",
-                        MemoryTransport(bus))
+    shell = DaemonShell(
+        config(VehicleDaemonConfig, node_id="A", scenario=str(PAPER)), "test", MemoryTransport(bus)
+    )
     await shell.open()
     reports: list[StatsReport] = []
     listener = MemoryTransport(bus)
@@ -391,8 +396,9 @@ def test_command_flags_override_the_file(tmp_path: Path) -> None:
 
     path = tmp_path / "car.toml"
     path.write_text(f'node_id = "A"\nscenario = "{PAPER}"\n')
-    cfg, scenario = load_daemon(_args("vehicle", "--config", str(path), "--id", "B",
-                                      "--listen", "udp/127.0.0.1:7000"))
+    cfg, scenario = load_daemon(
+        _args("vehicle", "--config", str(path), "--id", "B", "--listen", "udp/127.0.0.1:7000")
+    )
     assert cfg.node_id == "B" and scenario.name == "paper-blind-intersection"
     assert cfg.zenoh.listen == ["udp/127.0.0.1:7000"]
 
@@ -406,7 +412,9 @@ def test_command_flags_override_the_file(tmp_path: Path) -> None:
         ("monitor.toml", MonitorConfig),
     ],
 )
-def test_example_configs_load(name: str, model: type[CommonDaemonConfig]) -> None:
+def test_example_configs_load(
+    name: str, model: type[VehicleDaemonConfig | RsuDaemonConfig | MonitorConfig]
+) -> None:
     cfg = load_config(model, REPO / "deploy" / "examples" / name, {}, env={})
     scenario = load_scenario(REPO / cfg.scenario)
     ids = {v.id for v in scenario.vehicles} | {r.id for r in scenario.rsus} | {"monitor"}
@@ -465,8 +473,10 @@ async def run_in_memory(
         stop.set()
         codes = await asyncio.gather(*tasks)
     assert code == 0 and codes == [0] * len(actors)
-    assert all(a.runs_done == (1 if isinstance(a, VehicleDaemon) or mode is RunMode.RSU else 0)
-               for a in actors)
+    assert all(
+        a.runs_done == (1 if isinstance(a, VehicleDaemon) or mode is RunMode.RSU else 0)
+        for a in actors
+    )
     return monitor
 
 

@@ -72,8 +72,13 @@ def test_actor_commands_order_listen_and_connect() -> None:
     assert list(cmds) == nodes
     mon, rsu, a, b = (cmds[n] for n in nodes)
     assert mon[:4] == ["py", "-m", "services.runtime.cli", "monitor"]
-    for flag, value in (("--mode", "rsu"), ("--policy", "slot"), ("--seed", "3"),
-                        ("--speed", "2.0"), ("--run-id", "r1")):
+    for flag, value in (
+        ("--mode", "rsu"),
+        ("--policy", "slot"),
+        ("--seed", "3"),
+        ("--speed", "2.0"),
+        ("--run-id", "r1"),
+    ):
         assert mon[mon.index(flag) + 1] == value
     assert mon[mon.index("--json") + 1] == str(Path("out.json").resolve())
     assert rsu[3:6] == ["rsu", "--scenario", str(PAPER)] and rsu[rsu.index("--id") + 1] == "rsu1"
@@ -93,7 +98,9 @@ def test_actor_commands_order_listen_and_connect() -> None:
 
 def test_actor_commands_refuse_missing_endpoints_and_bad_locators() -> None:
     with pytest.raises(ValueError, match="no endpoints for rsu1"):
-        actor_commands(PAPER, RunMode.RSU, "paper", 0, 1.0, loopback_endpoints(["monitor", "A", "B"]))
+        actor_commands(
+            PAPER, RunMode.RSU, "paper", 0, 1.0, loopback_endpoints(["monitor", "A", "B"])
+        )
     fp_only = actor_commands(
         PAPER, RunMode.FP_ONLY, "paper", 0, 1.0, loopback_endpoints(["monitor", "A", "B"])
     )
@@ -145,8 +152,14 @@ def test_up_runs_the_paper_scenario_like_the_in_process_harness(tmp_path: Path) 
     for stream in ("fp", "ap", "cmd", "beacon"):
         assert stream in network, stream
     for entry in (network[s] for s in ("fp", "ap", "cmd", "beacon")):
-        for key in ("msgs", "bytes", "kbps_per_vehicle", "latency_ms_p50", "latency_ms_p99",
-                    "delivery_ratio"):
+        for key in (
+            "msgs",
+            "bytes",
+            "kbps_per_vehicle",
+            "latency_ms_p50",
+            "latency_ms_p99",
+            "delivery_ratio",
+        ):
             assert key in entry
     assert network["fp"]["delivery_ratio"] > 0.9
     assert network["fp"]["malformed"] == 0

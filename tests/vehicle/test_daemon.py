@@ -128,12 +128,17 @@ async def test_car_follows_a_run_publishing_truth_and_future_paths() -> None:
 
 async def test_car_sends_nothing_in_standalone_mode_and_ignores_foreign_runs() -> None:
     async with Harness("B") as h:
-        h.control(start_message("other", RunMode.RSU, vehicles=("X", "Y"),
-                                start_times={"X": 0.0, "Y": 0.0}))
+        h.control(
+            start_message(
+                "other", RunMode.RSU, vehicles=("X", "Y"), start_times={"X": 0.0, "Y": 0.0}
+            )
+        )
         h.control(start_message("wrong-map", RunMode.RSU, scenario="another-scenario"))
         await asyncio.sleep(0.1)
         assert h.daemon.active is None and h.truths == []
-        h.control(start_message("solo", RunMode.STANDALONE, speed=10.0, start_times={"A": 0, "B": 0}))
+        h.control(
+            start_message("solo", RunMode.STANDALONE, speed=10.0, start_times={"A": 0, "B": 0})
+        )
         await wait_for(lambda: len(h.truths) >= 20)
         assert h.fps == [] and h.truths[-1].state.speed > 0.0
         h.control(StopRun("solo"))
@@ -191,7 +196,7 @@ def test_advance_moves_truth_along_its_heading() -> None:
 
 @pytest.mark.daemons
 async def test_real_vehicle_daemon_survives_garbage_and_counts_it() -> None:
-    (udp, tcp), = free_ports(1)
+    ((udp, tcp),) = free_ports(1)
     listen = [f"udp/127.0.0.1:{udp}", f"tcp/127.0.0.1:{tcp}"]
     proc = subprocess.Popen(
         [sys.executable, "-m", "services.runtime.cli", "vehicle", "--scenario", str(PAPER),
@@ -237,7 +242,7 @@ async def test_real_vehicle_daemon_survives_garbage_and_counts_it() -> None:
         assert last["plumbing_malformed"] >= 1
         assert last["streams"]["fp"]["msgs_rx"] == 0  # nothing was taken as valid
         proc.send_signal(signal.SIGTERM)
-        out, err = await asyncio.to_thread(proc.communicate, timeout=20)
+        _out, err = await asyncio.to_thread(proc.communicate, timeout=20)
         assert proc.returncode == 0, err
         assert "Traceback" not in err
     finally:

@@ -91,10 +91,18 @@ __all__ = [
     "DEFAULT_OUT",
     "DEFAULT_SCENARIO",
     "PAPER_REFERENCE",
+    "aggregate_behaviour",
+    "aggregate_column",
+    "analyse_trial",
     "analyse_vehicle",
     "configure",
+    "plot_passing_times",
+    "plot_speed_profiles",
+    "render_report",
+    "render_table",
     "run",
     "run_paper_experiment",
+    "table_rows",
 ]
 
 log = logging.getLogger("crosspath.experiment")
