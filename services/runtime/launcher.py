@@ -8,7 +8,9 @@ every child: SIGTERM to its process group, SIGKILL after
 :data:`GRACE_S` seconds. No process is left behind, also when a child crashes
 (the launcher sees it exit, and the monitor sees its liveliness token go: the
 run fails with a clear message and the last lines of the failed child's log),
-on ``--timeout`` and when the launcher gets SIGINT (Ctrl-C) or SIGTERM.
+on ``--timeout`` and when the launcher gets SIGINT (Ctrl-C) or SIGTERM; a second
+signal skips the grace period. On Linux the children also get SIGTERM from the
+kernel if the launcher itself dies (``PR_SET_PDEATHSIG``).
 
 Network: every daemon is a Zenoh peer with multicast scouting off, listening
 on one UDP and one TCP port of 127.0.0.1 (free ports picked at start) and
@@ -55,6 +57,7 @@ __all__ = [
     "Launcher",
     "actor_commands",
     "configure",
+    "daemon_env",
     "free_ports",
     "loopback_endpoints",
     "node_order",
@@ -128,7 +131,10 @@ def actor_commands(
 
     ``endpoints`` gives every node's locators (monitor included); node ``i``
     listens on its own and connects to those of nodes ``0..i-1``. Nothing is
-    started and nothing but the scenario file is read. Raises ``ValueError``
+    started and nothing but the scenario file is read. Start each with
+    :func:`daemon_env` and :data:`REPO_ROOT` as working directory (as
+    :class:`Launcher` does); ``zenoh_options`` are raw Zenoh settings for every
+    daemon (``crosspath up`` shortens the link lease, :data:`LEASE_MS`). Raises ``ValueError``
     (``ScenarioError`` included) when the scenario is unusable or an endpoint
     is missing.
     """
@@ -203,6 +209,26 @@ def loopback_endpoints(nodes: Sequence[str]) -> dict[str, Endpoints]:
     }
 
 
+def _die_with_parent() -> None:
+    """In the child before exec (Linux): SIGTERM when the launcher dies, even by SIGKILL."""
+    import ctypes
+
+    pr_set_pdeathsig = 1
+    with contextlib.suppress(OSError, AttributeError):
+        ctypes.CDLL(None, use_errno=True).prctl(pr_set_pdeathsig, int(signal.SIGTERM))
+
+
+def daemon_env(base: Mapping[str, str] | None = None) -> dict[str, str]:
+    """The environment for a daemon started with :func:`actor_commands`' argv: ``base`` (or
+    ours) with this source tree first on ``PYTHONPATH``, so ``-m services.runtime.cli``
+    works without an installed package; run it with the source tree as working directory."""
+    env = dict(os.environ if base is None else base)
+    path = env.get("PYTHONPATH")
+    env["PYTHONPATH"] = str(REPO_ROOT) + (os.pathsep + path if path else "")
+    env.setdefault("PYTHONUNBUFFERED", "1")
+    return env
+
+
 def _tail(path: Path, lines: int = TAIL_LINES) -> str:
     try:
         text = path.read_text(errors="replace")
@@ -249,17 +275,10 @@ class Launcher:
 
     # -- children
 
-    def _child_env(self) -> dict[str, str]:
-        env = dict(os.environ if self.env is None else self.env)
-        path = env.get("PYTHONPATH")
-        env["PYTHONPATH"] = str(REPO_ROOT) + (os.pathsep + path if path else "")
-        env.setdefault("PYTHONUNBUFFERED", "1")
-        return env
-
     def start(self) -> None:
         """Start every command in order, each in its own session (process group)."""
         self.run_dir.mkdir(parents=True, exist_ok=True)
-        env = self._child_env()
+        env = daemon_env(self.env)
         for node, argv in self.commands.items():
             if self.interrupted:
                 return
@@ -274,6 +293,7 @@ class Launcher:
                     cwd=REPO_ROOT,
                     env=env,
                     start_new_session=True,
+                    preexec_fn=_die_with_parent if sys.platform == "linux" else None,
                 )
             except OSError:
                 log_file.close()

@@ -172,22 +172,30 @@ def test_up_runs_the_paper_scenario_like_the_in_process_harness(tmp_path: Path) 
     assert len(pids) == 4 and all(gone(pid) for pid in pids)
 
 
-@pytest.mark.daemons
-def test_sigterm_to_up_mid_run_leaves_no_process(tmp_path: Path) -> None:
+def start_up_and_wait_mid_run(tmp_path: Path) -> tuple[subprocess.Popen[str], dict[str, int]]:
+    """``crosspath up`` in the background, 2 s into its run; its children's pids."""
     proc = subprocess.Popen(
         up_command(tmp_path, "--mode", "rsu", "--speed", str(SPEED)),
         cwd=REPO, env=child_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
+    monitor_log = tmp_path / "run" / "monitor.log"
+    deadline = time.monotonic() + 60.0
+    while not (monitor_log.exists() and "starting run" in monitor_log.read_text()):
+        if proc.poll() is not None or time.monotonic() > deadline:
+            proc.kill()
+            raise AssertionError(f"the run did not start: {proc.communicate()}")
+        time.sleep(0.1)
+    time.sleep(2.0)  # mid-run
+    pids = {node: int(c["pid"]) for node, c in children(tmp_path).items()}
+    assert sorted(pids) == ["A", "B", "monitor", "rsu1"]
+    assert not any(gone(pid) for pid in pids.values())
+    return proc, pids
+
+
+@pytest.mark.daemons
+def test_sigterm_to_up_mid_run_leaves_no_process(tmp_path: Path) -> None:
+    proc, pids = start_up_and_wait_mid_run(tmp_path)
     try:
-        monitor_log = tmp_path / "run" / "monitor.log"
-        deadline = time.monotonic() + 60.0
-        while not (monitor_log.exists() and "starting run" in monitor_log.read_text()):
-            assert proc.poll() is None, proc.communicate()
-            assert time.monotonic() < deadline, "the run did not start"
-            time.sleep(0.1)
-        time.sleep(2.0)  # mid-run
-        pids = [c["pid"] for c in children(tmp_path).values()]
-        assert len(pids) == 4 and not any(gone(pid) for pid in pids)
         proc.send_signal(signal.SIGTERM)
         out, err = proc.communicate(timeout=30)
     finally:
@@ -196,9 +204,28 @@ def test_sigterm_to_up_mid_run_leaves_no_process(tmp_path: Path) -> None:
             proc.wait()
     assert proc.returncode == 128 + signal.SIGTERM, out + err
     assert "interrupted by SIGTERM" in err
-    assert all(gone(pid) for pid in pids)
+    assert all(gone(pid) for pid in pids.values())
     # every daemon stopped gracefully (first signal), none was killed
     for node in ("monitor", "rsu1", "A", "B"):
         log = (tmp_path / "run" / f"{node}.log").read_text()
         assert "SIGTERM received: stopping" in log, node
         assert "zenoh session closed" in log, node
+
+
+@pytest.mark.daemons
+def test_a_crashing_car_fails_the_run_clearly_and_leaves_no_process(tmp_path: Path) -> None:
+    proc, pids = start_up_and_wait_mid_run(tmp_path)
+    try:
+        os.kill(pids["B"], signal.SIGKILL)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 1, out + err
+    assert "B exited during the run with code -9" in err
+    assert "run failed: B lost: its liveliness token disappeared" in err
+    assert "--- B (exit -9), last lines of" in err
+    result = json.loads((tmp_path / "run" / "result.json").read_text())
+    assert result["error"].startswith("B lost")
+    assert all(gone(pid) for pid in pids.values())

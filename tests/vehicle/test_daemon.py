@@ -126,7 +126,7 @@ async def test_car_follows_a_run_publishing_truth_and_future_paths() -> None:
         assert h.daemon.active is None
 
 
-async def test_car_sends_nothing_in_standalone_mode_and_ignores_foreign_runs() -> None:
+async def test_car_ignores_foreign_runs_sends_nothing_standalone_and_serves_the_next_run() -> None:
     async with Harness("B") as h:
         h.control(
             start_message(
@@ -143,6 +143,13 @@ async def test_car_sends_nothing_in_standalone_mode_and_ignores_foreign_runs() -
         assert h.fps == [] and h.truths[-1].state.speed > 0.0
         h.control(StopRun("solo"))
         await wait_for(lambda: h.daemon.runs_done == 1)
+        # the same daemon serves the next run
+        h.truths.clear()
+        h.control(start_message("next", RunMode.FP_ONLY, speed=10.0))
+        await wait_for(lambda: len(h.truths) >= 5 and len(h.fps) >= 2)
+        assert {t.run_id for t in h.truths} == {"next"} and h.truths[0].step == 0
+        h.control(StopRun("next"))
+        await wait_for(lambda: h.daemon.runs_done == 2)
 
 
 async def test_car_senses_the_other_car_from_its_ground_truth() -> None:
