@@ -28,7 +28,7 @@ from services.rsu.velocity import Policy
 from services.runtime.membus import ChannelModel, MemoryChannel
 from services.vehicle.agent import VehicleAgent, VehicleSpec
 from services.vehicle.planner import Reason
-from services.world.car import CarBody
+from services.world.car import CarBody, all_at_goal
 from services.world.kinematics import TruthState
 from services.world.metrics import MetricsRecorder
 from services.world.results import RunMode, run_result
@@ -211,7 +211,7 @@ class Simulation:
                     )
             if self.on_step is not None:
                 self.on_step(now, truths)
-            if now >= max_t or self._all_done(truths):
+            if now >= max_t or all_at_goal(sc, truths.values()):
                 break
             for vid, body in self.bodies.items():
                 body.step(now, dt, self.agents[vid].command(body.state))
@@ -234,13 +234,6 @@ class Simulation:
             wall_s=wall,
             extra=extra,
         )
-
-    def _all_done(self, truths: dict[str, TruthState]) -> bool:
-        for vid, agent in self.agents.items():
-            t = truths[vid]
-            if t.s < agent.spec.goal_s - self.scenario.params.goal_tolerance_m or t.speed > 0.05:
-                return False
-        return True
 
     def write_trace(self, path: Path) -> None:
         """The per-tick table as CSV (pandas reads it as is)."""

@@ -7,6 +7,7 @@ monitor and for the other cars' simulated sensors.
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 
 from services.world.geometry import Polyline
@@ -63,3 +64,13 @@ class CarBody:
             length=self.length,
             width=self.width,
         )
+
+
+STANDING_MPS = 0.05
+"""A car slower than this counts as standing (for the end of a run) [m/s]."""
+
+
+def all_at_goal(scenario: Scenario, truths: Iterable[TruthState]) -> bool:
+    """Does every car stand at its goal? Ends a run, in either harness."""
+    tol = scenario.params.goal_tolerance_m
+    return all(t.s >= scenario.goal_m(t.id) - tol and t.speed <= STANDING_MPS for t in truths)

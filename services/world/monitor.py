@@ -22,7 +22,7 @@ V2X. One run, step by step:
    in-process harness does; a step still missing a car :data:`TRUTH_WAIT_S`
    wall seconds after its time (or once another car is a second ahead) is
    recorded with that car's latest known truth (counted in ``truth.gaps``).
-4. **End.** When every car stands at its goal (as ``Simulation._all_done``) or
+4. **End.** When every car stands at its goal (``car.all_at_goal``, as the harness) or
    run time reaches ``max_sim_s`` (the scenario's unless configured), it
    publishes :class:`~services.runtime.control.StopRun`, waits up to
    ``stats_wait_s`` for every actor's final stats report, and builds the run
@@ -97,7 +97,7 @@ from services.runtime.daemon_base import (
 )
 from services.runtime.stats import merge_snapshots, network_section
 from services.runtime.transport import Transport
-from services.world.kinematics import TruthState
+from services.world.car import all_at_goal
 from services.world.metrics import MetricsRecorder
 from services.world.results import RunMode, run_result
 from services.world.scenario import Scenario
@@ -437,13 +437,8 @@ class MonitorService:
         self.last_t = now
         if now >= self.max_sim_s:
             self.done_reason = f"max_sim_s ({self.max_sim_s:g} s) reached"
-        elif len(states) == len(self.vehicles) and self._all_done(states):
+        elif len(states) == len(self.vehicles) and all_at_goal(self.scenario, states):
             self.done_reason = "every car stands at its goal"
-
-    def _all_done(self, states: list[TruthState]) -> bool:
-        """As ``services.runtime.sim.Simulation._all_done``."""
-        tol = self.scenario.params.goal_tolerance_m
-        return all(st.s >= self.scenario.goal_m(st.id) - tol and st.speed <= 0.05 for st in states)
 
     # ------------------------------------------------------------------ stats, liveliness
 
