@@ -33,6 +33,7 @@ bench: install
 	@mkdir -p $(OUT)/bench
 	$(BIN)/crosspath bench codec --json $(OUT)/bench/codec.json
 	$(BIN)/crosspath bench rsu --json $(OUT)/bench/rsu.json
+	$(BIN)/crosspath bench sim --json $(OUT)/bench/sim.json
 
 demo: install
 	$(BIN)/crosspath demo

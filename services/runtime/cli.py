@@ -23,6 +23,7 @@ COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
     ("demo",): ("services.runtime.commands.demo", "the paper's scenario in 3 modes, real daemons"),
     ("bench", "codec"): ("services.runtime.bench.codec", "codec micro-benchmark against JSON"),
     ("bench", "rsu"): ("services.runtime.bench.rsu", "RSU conflict-check benchmark against naive"),
+    ("bench", "sim"): ("services.runtime.bench.sim", "in-process harness speed against real time"),
     ("experiment", "paper"): ("services.runtime.experiments.paper", "the paper's table, figures"),
     ("experiment", "loss-sweep"): (
         "services.runtime.experiments.loss_sweep",

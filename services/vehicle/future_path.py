@@ -35,15 +35,15 @@ def future_path_points(
     # positions at the sample times; past the last finite time the car holds (a stop) or the
     # profile ends (goal or look-ahead reached)
     s_at = np.interp(t_samples, t_known, s_known)
-    keep = np.empty(s_at.shape[0], dtype=bool)
-    keep[0] = True
-    last = s_at[0]
-    for i in range(1, s_at.shape[0]):
-        if s_at[i] - last >= MIN_SPACING_M:
-            keep[i] = True
-            last = s_at[i]
-        else:
-            keep[i] = False
+    keep = np.ones(s_at.shape[0], dtype=bool)
+    if not bool(np.all(np.diff(s_at) >= MIN_SPACING_M)):
+        # slow or stopping somewhere: drop points too close to the last one kept
+        last = s_at[0]
+        for i in range(1, s_at.shape[0]):
+            if s_at[i] - last >= MIN_SPACING_M:
+                last = s_at[i]
+            else:
+                keep[i] = False
     keep[-1] = True  # the hold point at the horizon
     s_sel = s_at[keep]
     t_sel = t_samples[keep]

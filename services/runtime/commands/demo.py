@@ -18,7 +18,9 @@ from typing import Any
 
 from services.world.results import RunMode
 
-DEFAULT_SCENARIO = Path(__file__).resolve().parents[3] / "scenarios" / "paper-blind-intersection.toml"
+DEFAULT_SCENARIO = (
+    Path(__file__).resolve().parents[3] / "scenarios" / "paper-blind-intersection.toml"
+)
 
 PAPER_MEAN_S = {"standalone": 36.51, "fp-only": 37.17, "rsu": 27.05}
 """The paper's average passing times (Table I), for reference."""
@@ -73,8 +75,7 @@ def format_table(results: dict[str, dict[str, Any]]) -> str:
         [_cell((r.get("network") or {}).get("total_kbps_per_vehicle")) for r in results.values()],
     )
     fp_lat = [
-        ((r.get("network") or {}).get("fp") or {}).get("latency_ms_p50")
-        for r in results.values()
+        ((r.get("network") or {}).get("fp") or {}).get("latency_ms_p50") for r in results.values()
     ]
     row("fp latency p50 [ms]", [_cell(x) for x in fp_lat])
     return "\n".join(lines)
@@ -87,9 +88,23 @@ def run(args: argparse.Namespace) -> int:
     for mode in args.modes:
         path = out / f"{mode}.json"
         argv = [
-            sys.executable, "-m", "services.runtime.cli", "up", str(args.scenario),
-            "--mode", mode, "--policy", args.policy, "--seed", str(args.seed),
-            "--speed", str(args.speed), "--json", str(path), "--run-dir", str(out / mode),
+            sys.executable,
+            "-m",
+            "services.runtime.cli",
+            "up",
+            str(args.scenario),
+            "--mode",
+            mode,
+            "--policy",
+            args.policy,
+            "--seed",
+            str(args.seed),
+            "--speed",
+            str(args.speed),
+            "--json",
+            str(path),
+            "--run-dir",
+            str(out / mode),
         ]
         print(f"== crosspath demo: {mode} (real daemons over Zenoh) ==", flush=True)
         started = time.monotonic()
