@@ -21,6 +21,20 @@ coordinated mode or still has a command pending for, and repeats it
 car's future path already shows AUTO: the cars return to their autonomous
 planner instead of waiting out the coordinated-path timeout.
 
+Joining late: when the start message arrives after the run's epoch (the daemon
+was restarted during a run, which the monitor allows with ``expect_crash``), the
+RSU starts at the current planning step instead of replaying the past, and
+rebuilds its reservation table from the future paths the cars keep
+broadcasting.
+
+Its stats reports (``{prefix}/stats/{me}``) carry, beside the V2X counters:
+``boot`` (a random id per process, so the monitor tells a restarted RSU from
+the one before), ``joined_s`` (run time at which this process began the run),
+``table`` / ``table_size`` (the cars in the reservation table now),
+``vehicles_seen`` (distinct cars heard in coverage this run) and
+``table_log``, every change of the table's set of cars as ``[t, [cars]]`` (run
+time; at most :data:`TABLE_LOG_MAX` entries).
+
 Configuration (:class:`RsuDaemonConfig`): the common daemon settings
 (``node_id`` is the RSU id of the scenario), ``scenario``, and an optional
 ``policy`` that overrides the start message's. The ``[time]`` table is not
@@ -31,11 +45,13 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import math
+import secrets
 import sys
 import time
 from collections.abc import Callable, Iterable
 from pathlib import Path
-from typing import Final
+from typing import Any, Final
 
 from protocol import Command, FuturePath, Header, Message, Mode, ModeCommand
 from protocol import keys as keyexpr
@@ -49,10 +65,11 @@ from services.runtime.config import (
     add_common_arguments,
     exit_on_config_error,
 )
-from services.runtime.control import StartRun
+from services.runtime.control import StartRun, StatsReport
 from services.runtime.daemon_base import (
     END_MARGIN_S,
     ActorDaemon,
+    DaemonShell,
     load_daemon_config,
     load_daemon_scenario,
     run_daemon,
@@ -64,6 +81,7 @@ from services.world.results import RunMode
 from services.world.scenario import Scenario
 
 __all__ = [
+    "TABLE_LOG_MAX",
     "TERMINATION_INTERVAL_S",
     "TERMINATION_ROUNDS",
     "RsuDaemon",
@@ -78,6 +96,31 @@ TERMINATION_ROUNDS: Final = 3
 
 TERMINATION_INTERVAL_S: Final = 0.1
 """Wall seconds between two rounds of final terminations."""
+
+TABLE_LOG_MAX: Final = 2000
+"""Most changes of the reservation table's cars kept per run for the stats reports."""
+
+
+class _RsuShell(DaemonShell):
+    """The daemon shell whose stats reports also carry the RSU's table (see module doc)."""
+
+    def __init__(
+        self,
+        config: CommonDaemonConfig,
+        service: str,
+        transport: Transport,
+        *,
+        time_fn: Callable[[], float],
+        extras: Callable[[], dict[str, Any]],
+    ) -> None:
+        super().__init__(config, service, transport, time_fn=time_fn)
+        self._extras = extras
+
+    def stats_report(self, final: bool) -> StatsReport:
+        report = super().stats_report(final)
+        snapshot = dict(report.snapshot)
+        snapshot.update(self._extras())
+        return StatsReport(report.node, report.run_id, report.final, snapshot)
 
 
 class RsuDaemonConfig(CommonDaemonConfig):
@@ -104,6 +147,16 @@ class RsuDaemon(ActorDaemon):
     ) -> None:
         scenario.rsu(config.node_id)  # raises for an unknown RSU
         super().__init__(config, scenario, transport, time_fn=time_fn)
+        # Same transport, a shell whose stats reports add the table (nothing is open yet).
+        self.shell = _RsuShell(
+            config, self.service, self.shell.transport, time_fn=time_fn, extras=self.table_stats
+        )
+        self.log = self.shell.log
+        self.boot = secrets.token_hex(6)
+        self.joined_s: float | None = None
+        self.table_log: list[tuple[float, tuple[str, ...]]] = []
+        self._table: tuple[str, ...] = ()
+        self._seen = 0
         self.policy_override = config.policy
         self.core: RsuCore | None = None
         self.vehicles: frozenset[str] = frozenset()
@@ -128,6 +181,31 @@ class RsuDaemon(ActorDaemon):
         core = self.core
         if core is not None:
             self._send(core.on_message(now, message, parsed.rsu))
+            self._note_table(now)
+
+    def _note_table(self, now: float) -> None:
+        """Log a change of the set of cars in the reservation table (run time ``now``)."""
+        core = self.core
+        if core is None:
+            return
+        self._seen = core.counters["vehicles_seen"]
+        cars = tuple(sorted(core.table))
+        if cars != self._table:
+            self._table = cars
+            if len(self.table_log) < TABLE_LOG_MAX:
+                self.table_log.append((round(now, 4), cars))
+            self.log.debug("reservation table at %.3f s: %s", now, ", ".join(cars) or "empty")
+
+    def table_stats(self) -> dict[str, Any]:
+        """The extra fields of this RSU's stats reports (see the module docstring)."""
+        return {
+            "boot": self.boot,
+            "joined_s": self.joined_s,
+            "table": list(self._table),
+            "table_size": len(self._table),
+            "vehicles_seen": self._seen,
+            "table_log": [[t, list(cars)] for t, cars in self.table_log],
+        }
 
     def _send(self, outgoing: Iterable[Outgoing]) -> None:
         for og in outgoing:
@@ -145,10 +223,17 @@ class RsuDaemon(ActorDaemon):
         core = RsuCore(rsu_config(sc, self.node, policy))
         self.vehicles = frozenset(start.vehicles)
         self.reported = {}
+        self.table_log = []
+        self._table = ()
+        self._seen = 0
         self.core = core
         dt = 1.0 / sc.params.planning_hz
         limit = start.max_sim_s + END_MARGIN_S
-        step = 0
+        # A daemon restarted during a run joins at the current step, not at step 0.
+        step = max(0, math.ceil(clock.now() / dt - 1e-9))
+        self.joined_s = round(step * dt, 4)
+        if step > 0:
+            self.log.warning("joining run %s late, at run time %.2f s", start.run_id, step * dt)
         while True:
             now = step * dt
             if not await sleep_until(clock, now, halt):
@@ -157,6 +242,7 @@ class RsuDaemon(ActorDaemon):
                 self._end(f"run time passed max_sim_s ({start.max_sim_s:g} s)")
                 break
             self._send(core.tick(now))
+            self._note_table(now)
             step += 1
 
     def coordinated(self) -> list[str]:

@@ -71,7 +71,7 @@ TIE_S = 0.3
 STOP_MARGIN_M = 0.3
 """Planned stops aim this far before the line, for the actuator lag [m]."""
 
-CAUTION_SAMPLE_M = 1.0
+CAUTION_SAMPLE_M = 2.0
 """Spacing of the points sampled along crossing lanes for visibility [m]."""
 
 CREEP_MPS = 1.5
@@ -288,6 +288,8 @@ class AutonomousPlanner:
         if ego.s > crossing.s_stop + 0.5:
             return True  # past the stop line: caution no longer helps
         lim = self.limits
+        if crossing.s_in - ego.s > self.sensor_range_m:
+            return False  # the crossing road is beyond the sensors' reach
         # time for this car to clear the zone (rear out), driving off at the limit from now
         to_clear = crossing.s_out + self.length / 2.0 - ego.s
         t_clear = earliest_arrival(to_clear, ego.speed, lim.accel, lim.v_max)

@@ -33,6 +33,7 @@ Definitions (times in s on the run's time base, distances in m):
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -40,6 +41,7 @@ from itertools import combinations
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from services.world.geometry import (
     FloatArray,
@@ -357,7 +359,7 @@ class MetricsRecorder:
             return
         xy = np.array([(s.x, s.y) for s in states], dtype=np.float64)
         rad = 0.5 * np.hypot([s.length for s in states], [s.width for s in states])
-        ii, jj = np.triu_indices(n, k=1)
+        ii, jj = _pairs(n)
         lb = np.hypot(*(xy[ii] - xy[jj]).T) - rad[ii] - rad[jj]
         cand = np.flatnonzero((lb <= 0.0) | (lb < self._min_gap))
         now_overlap: set[tuple[str, str]] = set()
@@ -483,3 +485,12 @@ def _gate_time(
     if prev is None or prev_t is None or prev.s >= gate or not st.s > prev.s:
         return t
     return prev_t + (t - prev_t) * (gate - prev.s) / (st.s - prev.s)
+
+
+@functools.lru_cache(maxsize=64)
+def _pairs(n: int) -> tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]:
+    """Index pairs (i < j) of ``n`` cars; cached, the set of cars rarely changes."""
+    ii, jj = np.triu_indices(n, k=1)
+    ii.flags.writeable = False
+    jj.flags.writeable = False
+    return ii, jj

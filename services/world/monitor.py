@@ -35,6 +35,27 @@ an actor is missing at the start, does not acknowledge, or loses its
 liveliness token during the run (crashed or disconnected), or when the monitor
 is stopped by SIGTERM/SIGINT; the actors are told with a stop message.
 
+Fault experiments (the network lab, ``services.runtime.lab``) use three
+optional settings:
+
+- ``expect_crash`` (``--expect-crash NODE``, repeatable): nodes that may crash
+  and restart during the run. Losing such a node's liveliness token does not
+  fail the run (the event is listed in ``crashes``), and the start message is
+  repeated every :data:`START_REPEAT_S` for the whole run, so a restarted
+  daemon joins the run in progress. A stats report whose ``boot`` differs from
+  the node's previous one comes from a new incarnation: the previous
+  incarnation's latest counters are kept and still count in ``network``.
+- ``trace`` (``--trace``): the result gets ``trace``, one row per recorded
+  physics step and car, fields :data:`TRACE_FIELDS` (run time, position, mode
+  and planner reason as the car reported them).
+- ``start_file`` (``--start-file FILE``): when the run starts, the monitor
+  writes ``{"run_id", "epoch_unix", "speed"}`` there, so a controller can
+  schedule faults on the run clock.
+
+The result also lists per node (``actors``) its V2X totals and whatever
+extra fields its latest stats report carried (the RSU daemon adds its
+reservation table, ``services.rsu.daemon``), and ``epoch_unix``.
+
 ``network``: per V2X stream (``fp``, ``ap``, ``cmd``, ``beacon``) ``msgs``,
 ``bytes``, ``kbps_per_vehicle``, ``latency_ms_p50``, ``latency_ms_p99``,
 ``delivery_ratio`` and more (``services.runtime.stats.network_section``), plus
@@ -104,6 +125,7 @@ from services.world.scenario import Scenario
 
 __all__ = [
     "START_REPEAT_S",
+    "TRACE_FIELDS",
     "TRUTH_WAIT_S",
     "V2X_STREAMS",
     "MonitorConfig",
@@ -131,6 +153,12 @@ POLL_S: Final = 0.05
 V2X_STREAMS: Final = ("fp", "ap", "cmd", "beacon")
 """The streams of the ``network`` section, in table order."""
 
+TRACE_FIELDS: Final = ("t", "vehicle", "x", "y", "s", "speed", "mode", "reason")
+"""Columns of the optional ``trace`` of the result (s, m, m, m, m/s, mode name, reason)."""
+
+_SNAPSHOT_KEYS: Final = frozenset({"node", "time_s", "streams"})
+"""Keys of a stats snapshot that are not extra per-node fields."""
+
 
 class MonitorConfig(CommonDaemonConfig):
     """Settings of ``crosspath monitor``; ``time.speed`` is the run's speed."""
@@ -154,11 +182,22 @@ class MonitorConfig(CommonDaemonConfig):
     """How long after the epoch every actor must have acknowledged the start [wall s]."""
     stats_wait_s: Annotated[float, Field(ge=0.0)] = 3.0
     """How long to wait for the actors' final stats reports after the stop [wall s]."""
+    expect_crash: tuple[str, ...] = ()
+    """Nodes that may crash (and restart) during the run without failing it."""
+    trace: bool = False
+    """Add the per-step ``trace`` (:data:`TRACE_FIELDS`) to the result."""
+    start_file: Path | None = None
+    """Write ``{run_id, epoch_unix, speed}`` here (JSON) when the run starts."""
 
     @field_validator("run_id")
     @classmethod
     def _run_id(cls, value: str | None) -> str | None:
         return None if value is None else keys.validate_id(value, "run id")
+
+    @field_validator("expect_crash")
+    @classmethod
+    def _expect_crash(cls, value: tuple[str, ...]) -> tuple[str, ...]:
+        return tuple(keys.validate_id(v, "node id") for v in value)
 
 
 def new_run_id(time_fn: Callable[[], float] = time.time) -> str:
@@ -250,6 +289,12 @@ class MonitorService:
         self.result: dict[str, Any] | None = None
         self.exit_code = 0
         self.end_wall: float | None = None
+        self.may_crash = frozenset(config.expect_crash)
+        self.crashes: list[dict[str, Any]] = []
+        """Liveliness losses and returns of ``expect_crash`` nodes during the run."""
+        self.earlier_reports: dict[str, list[StatsReport]] = {}
+        """Per node, the latest report of each earlier incarnation (see ``boot``)."""
+        self.trace_rows: list[tuple[float, str, float, float, float, float, str, str]] = []
         self._changed = asyncio.Event()
 
     # ------------------------------------------------------------------ Service
@@ -257,6 +302,11 @@ class MonitorService:
     async def startup(self) -> None:
         if set(self.vehicles) & set(self.rsus):
             raise ValueError("a vehicle and an RSU share an id: stats keys would collide")
+        unknown = self.may_crash - self.expected
+        if unknown:
+            raise ValueError(
+                f"expect_crash names nodes that are not actors of this run: {sorted(unknown)}"
+            )
         await self.shell.open()
         p = self.prefix
         self.shell.subscribe_plumbing(all_truths(prefix=p), self._on_truth)
@@ -319,6 +369,8 @@ class MonitorService:
         )
         self.start = start
         self.clock = RunClock(epoch, cfg.time.speed, time_fn=self.time_fn)
+        if cfg.start_file is not None:
+            _write_start_file(cfg.start_file, start)
         log.info(
             "starting run %s (%s, policy %s, seed %d, speed %g) in %.2f s",
             start.run_id,
@@ -337,16 +389,17 @@ class MonitorService:
                 self.failure = "monitor stopped by a signal before the run was over"
                 break
             unacked = self.expected - self.acked
-            if unacked:
-                if self.time_fn() > epoch + cfg.ack_timeout_s:
-                    self.failure = (
-                        f"no acknowledgement of run {start.run_id} from "
-                        f"{', '.join(sorted(unacked))} within {cfg.ack_timeout_s:g} s of its start"
-                    )
-                    break
-                if loop.time() - last_sent >= START_REPEAT_S:
-                    self.shell.publish_plumbing(control_key(prefix=self.prefix), payload)
-                    last_sent = loop.time()
+            if unacked and self.time_fn() > epoch + cfg.ack_timeout_s:
+                self.failure = (
+                    f"no acknowledgement of run {start.run_id} from "
+                    f"{', '.join(sorted(unacked))} within {cfg.ack_timeout_s:g} s of its start"
+                )
+                break
+            if (unacked or self.may_crash) and loop.time() - last_sent >= START_REPEAT_S:
+                # With expected crashes the start is repeated all run long: a restarted
+                # daemon joins the run in progress (the others ignore a start they have seen).
+                self.shell.publish_plumbing(control_key(prefix=self.prefix), payload)
+                last_sent = loop.time()
             self._advance()
         self.end_wall = self.time_fn()
         sim_s = self.last_t or 0.0
@@ -369,6 +422,10 @@ class MonitorService:
                 return
             # a lost actor sends no final report: do not wait for it
             if self.failure is not None and (self.expected & self.alive) <= finals:
+                return
+            # a node that crashed as expected and is not back sends none either
+            gone = self.may_crash - self.alive
+            if gone and self.expected - gone <= finals:
                 return
             await asyncio.sleep(POLL_S)
         missing = sorted(self.expected - {n for n, r in self.reports.items() if r.final})
@@ -428,6 +485,20 @@ class MonitorService:
                 self.truth_gaps += 1
             rows.append(report)
         states = [r.state for r in rows]
+        if self.config.trace:
+            self.trace_rows.extend(
+                (
+                    round(now, 3),
+                    r.vehicle,
+                    round(r.state.x, 3),
+                    round(r.state.y, 3),
+                    round(r.state.s, 3),
+                    round(r.state.speed, 3),
+                    r.mode,
+                    r.reason,
+                )
+                for r in rows
+            )
         self.metrics.record(
             now,
             states,
@@ -455,6 +526,11 @@ class MonitorService:
             raise PlumbingError(f"stats of {report.node}: {exc}") from None
         self.acked.add(report.node)
         prev = self.reports.get(report.node)
+        boot = report.snapshot.get("boot")
+        if prev is not None and boot is not None and prev.snapshot.get("boot") != boot:
+            # A restarted daemon: keep what its earlier incarnation counted.
+            self.earlier_reports.setdefault(report.node, []).append(prev)
+            prev = None
         if prev is None or not prev.final:
             self.reports[report.node] = report
 
@@ -464,12 +540,17 @@ class MonitorService:
         except keys.BadKey:
             return
         self._changed.set()
+        running = self.start is not None and self.done_reason is None and self.failure is None
+        if running and node in self.may_crash and (alive != (node in self.alive)):
+            clock = self.clock
+            t = None if clock is None else round(clock.now(), 3)
+            self.crashes.append({"node": node, "event": "back" if alive else "lost", "t_s": t})
+            log.warning("%s %s at run time %s", node, "is back" if alive else "lost", t)
         if alive:
             self.alive.add(node)
             return
         self.alive.discard(node)
-        running = self.start is not None and self.done_reason is None and self.failure is None
-        if running and node in self.expected:
+        if running and node in self.expected and node not in self.may_crash:
             self.failure = (
                 f"{node} lost: its liveliness token disappeared during the run "
                 "(daemon crashed, was stopped or lost its connection)"
@@ -486,6 +567,12 @@ class MonitorService:
         end = self.end_wall if self.end_wall is not None else self.time_fn()
         wall_s = max(0.0, end - start.epoch_unix)
         snapshots = [r.snapshot for n, r in sorted(self.reports.items()) if n in self.expected]
+        snapshots += [
+            r.snapshot
+            for n, reports in sorted(self.earlier_reports.items())
+            if n in self.expected
+            for r in reports
+        ]
         network = network_summary(snapshots, len(self.vehicles), len(self.rsus), sim_s)
         extra: dict[str, Any] = {
             "scenario": self.scenario.name,
@@ -502,7 +589,19 @@ class MonitorService:
             },
             "final_stats": sorted(n for n, r in self.reports.items() if r.final),
             "network": network,
+            "epoch_unix": start.epoch_unix,
+            "actors": {
+                n: _actor_summary(r, self.earlier_reports.get(n, []))
+                for n, r in sorted(self.reports.items())
+                if n in self.expected
+            },
         }
+        if self.may_crash:
+            extra["expect_crash"] = sorted(self.may_crash)
+            extra["crashes"] = list(self.crashes)
+        if self.config.trace:
+            extra["trace_fields"] = list(TRACE_FIELDS)
+            extra["trace"] = [list(row) for row in self.trace_rows]
         if self.failure is not None:
             extra["error"] = self.failure
         policy = str(start.policy) if start.mode is RunMode.RSU else None
@@ -515,6 +614,42 @@ class MonitorService:
             wall_s=wall_s,
             extra=extra,
         )
+
+
+def _v2x_totals(snapshot: Mapping[str, Any]) -> dict[str, int]:
+    """Datagrams and payload bytes sent and received over every stream of one snapshot."""
+    totals = {"msgs_tx": 0, "bytes_tx": 0, "msgs_rx": 0, "bytes_rx": 0}
+    streams = snapshot.get("streams")
+    if isinstance(streams, Mapping):
+        for data in streams.values():
+            if isinstance(data, Mapping):
+                for name in totals:
+                    value = data.get(name, 0)
+                    if isinstance(value, int) and not isinstance(value, bool):
+                        totals[name] += value
+    return totals
+
+
+def _actor_summary(report: StatsReport, earlier: list[StatsReport]) -> dict[str, Any]:
+    """One node's entry of ``actors``: V2X totals (all incarnations) and its extra fields."""
+    totals = _v2x_totals(report.snapshot)
+    for old in earlier:
+        for name, value in _v2x_totals(old.snapshot).items():
+            totals[name] += value
+    entry: dict[str, Any] = {"final": report.final, "v2x": totals}
+    entry.update((k, v) for k, v in report.snapshot.items() if k not in _SNAPSHOT_KEYS)
+    if earlier:
+        entry["incarnations"] = len(earlier) + 1
+    return entry
+
+
+def _write_start_file(path: Path, start: StartRun) -> None:
+    """``{run_id, epoch_unix, speed}`` as JSON, replaced atomically (readers never see half)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    data = {"run_id": start.run_id, "epoch_unix": start.epoch_unix, "speed": start.speed}
+    tmp.write_text(json.dumps(data) + "\n")
+    tmp.replace(path)
 
 
 async def _wait_any_for(a: asyncio.Event, b: asyncio.Event, timeout: float) -> None:
@@ -539,6 +674,18 @@ def configure(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--run-id", metavar="ID", help="id of the run (default: generated)")
     group.add_argument("--start-delay", type=float, metavar="S", help="wall s before run time 0")
     group.add_argument("--wait-actors", type=float, metavar="S", help="wall s to wait for actors")
+    group.add_argument(
+        "--expect-crash",
+        action="append",
+        metavar="NODE",
+        help="a node that may crash and restart without failing the run (repeatable)",
+    )
+    group.add_argument(
+        "--trace", action="store_true", default=None, help="add the per-step trace to the result"
+    )
+    group.add_argument(
+        "--start-file", type=Path, metavar="FILE", help="write run id and epoch here at the start"
+    )
 
 
 _FLAGS: Final = {
@@ -552,6 +699,9 @@ _FLAGS: Final = {
     "run_id": "run_id",
     "start_delay": "start_delay_s",
     "wait_actors": "wait_actors_s",
+    "expect_crash": "expect_crash",
+    "trace": "trace",
+    "start_file": "start_file",
 }
 
 
