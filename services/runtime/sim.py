@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from protocol import DecodeError, decode, encode
+from protocol import DecodeError, Kind, decode, encode, max_points
 from protocol import keys as keyexpr
 from protocol.keys import Stream
 from protocol.messages import Message
@@ -73,6 +73,8 @@ def rsu_config(scenario: Scenario, rsu_id: str, policy: Policy) -> RsuConfig:
         accel_mps2=p.accel_mps2,
         decel_comfort_mps2=p.decel_comfort_mps2,
         policy=policy,
+        # a coordinated path must fit one datagram: thin it to what the codec guarantees
+        max_points=max_points(Kind.COORDINATED_PATH),
     )
 
 
