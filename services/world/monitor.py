@@ -527,7 +527,8 @@ class MonitorService:
         self.acked.add(report.node)
         prev = self.reports.get(report.node)
         boot = report.snapshot.get("boot")
-        if prev is not None and boot is not None and prev.snapshot.get("boot") != boot:
+        prev_boot = None if prev is None else prev.snapshot.get("boot")
+        if prev is not None and None not in (boot, prev_boot) and prev_boot != boot:
             # A restarted daemon: keep what its earlier incarnation counted.
             self.earlier_reports.setdefault(report.node, []).append(prev)
             prev = None

@@ -407,6 +407,28 @@ def namespace_pids(netns: str) -> list[int]:
     return sorted({int(tok) for tok in done.stdout.split() if tok.isdigit()} - {me})
 
 
+def _wait_entered(proc: subprocess.Popen[bytes], netns: str, timeout: float = 5.0) -> None:
+    """Block until ``proc`` lives in ``netns`` (or has exited), at most ``timeout`` s.
+
+    ``ip netns exec`` joins the namespace a moment after it starts; until it
+    has, ``namespace_pids`` would not list it and a crash injected right away
+    would miss it. Returning only once it has joined makes ``exec`` then
+    ``crash`` deterministic.
+    """
+    try:
+        target = os.stat(f"/run/netns/{netns}").st_ino
+    except OSError:
+        return  # namespace gone; the command fails on its own
+    deadline = time.monotonic() + timeout
+    while proc.poll() is None and time.monotonic() < deadline:
+        try:
+            if os.stat(f"/proc/{proc.pid}/ns/net").st_ino == target:
+                return
+        except OSError:
+            return  # exited between poll and stat
+        time.sleep(0.002)
+
+
 def _signal_all(pids: Iterable[int], sig: signal.Signals) -> None:
     for pid in pids:
         with contextlib.suppress(ProcessLookupError, PermissionError):
@@ -711,6 +733,7 @@ class Lab:
         )
         self._children = [p for p in self._children if p.poll() is None]
         self._children.append(proc)
+        _wait_entered(proc, ns)
         return proc
 
     def run(
