@@ -420,14 +420,14 @@ def _read_points(
             raise DecodeError(f"first point: {_COLUMN_NAMES[c]} out of range")
     # column-major float64 holding integers (sums stay exact below 2**53): x [cm], y [cm],
     # t [ms on the run's time base], speed [cm/s]
-    cols = np.empty((ncols, n))
-    cols[:, 0] = first
-    cols[_T_COLUMN, 0] += time_us / 1000.0
+    cols = np.zeros((ncols, n))  # a column of width code 0 keeps its zero deltas
+    start = list(first)
+    start[_T_COLUMN] += time_us / 1000.0
+    cols[:, 0] = start
     count = n - 1
     for c in range(ncols):
         code = (widths >> (2 * c)) & 3
         if code == 0:
-            cols[c, 1:] = 0.0
             continue
         if code == 3:
             raise DecodeError(f"reserved width code 3 for column {_COLUMN_NAMES[c]}")
@@ -443,8 +443,10 @@ def _read_points(
         if np.minimum.reduce(cols[3]) < 0 or np.maximum.reduce(cols[3]) > _MAX_SPEED_CM_S:
             raise DecodeError("path speeds out of range")
         speeds = cols[3] / 100.0
+        speeds.flags.writeable = False
     points = np.empty((n, 3))
     np.divide(cols[:3], _SCALE3, points.T)
+    points.flags.writeable = False  # fresh and read-only: the message takes it without a copy
     return points, speeds, off
 
 

@@ -80,15 +80,33 @@ class Header:
         return self.time_us / 1e6
 
 
+def _is_frozen(arr: FloatArray, ndim: int) -> bool:
+    """Already a read-only float64 array of the right rank that owns its memory.
+
+    Such an array (the decoder makes them; another message's ``points`` is one)
+    is taken as is: copying it again would cost more than decoding it.
+    """
+    return (
+        arr.dtype == np.float64
+        and arr.ndim == ndim
+        and not arr.flags.writeable
+        and arr.flags.owndata
+    )
+
+
 def _frozen_points(
     points: FloatArray | list[list[float]] | list[tuple[float, float, float]],
 ) -> FloatArray:
+    if type(points) is np.ndarray and _is_frozen(points, 2) and points.shape[1] == 3:
+        return points
     arr = np.array(points, dtype=np.float64).reshape(-1, 3)
     arr.flags.writeable = False
     return arr
 
 
 def _frozen_vector(values: FloatArray | list[float]) -> FloatArray:
+    if type(values) is np.ndarray and _is_frozen(values, 1):
+        return values
     arr = np.array(values, dtype=np.float64).reshape(-1)
     arr.flags.writeable = False
     return arr

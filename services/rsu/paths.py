@@ -27,6 +27,12 @@ BoolArray = npt.NDArray[np.bool_]
 
 _EPS = 1e-9
 
+APPROACH_END_M = 30.0
+"""A future path ending this close to the conflict zone [m] (beyond its circumradius)
+counts as approaching even if it does not enter it: a cautious car stops at the stop
+line (8.5 m from the centre in the paper's scenario) or where it can see the crossing
+road."""
+
 
 def as_path(points: npt.ArrayLike) -> FloatArray:
     """Points as a float (N, 3) array; raises ValueError on a wrong shape."""
@@ -234,9 +240,12 @@ def is_approaching(
     """In coverage, not yet in the zone, and heading for it.
 
     Heading for it: the path enters the zone within ``horizon_s`` of ``now``,
-    or it ends closer to the zone than the car is now. The second case is a
-    car whose own plan stops short of the zone (blind-corner caution: it will
-    not enter until it sees the crossing road, which the RSU sees for it).
+    or it ends closer to the zone than the car is now and within
+    :data:`APPROACH_END_M` of it. The second case is a car whose own plan stops
+    short of the zone (blind-corner caution: it will not enter until it sees
+    the crossing road, which the RSU sees for it). The distance bound keeps a
+    car merely driving in the zone's general direction, on another road or
+    hundreds of metres away, out of coordination.
     """
     if math.hypot(x - rsu_centre[0], y - rsu_centre[1]) > coverage_m:
         return False
@@ -250,4 +259,5 @@ def is_approaching(
     cx, cy = zone.centroid
     here = math.hypot(x - cx, y - cy)
     there = math.hypot(float(points[-1, 0]) - cx, float(points[-1, 1]) - cy)
-    return there < here - 0.5
+    radius = float(np.hypot(zone.vertices[:, 0] - cx, zone.vertices[:, 1] - cy).max())
+    return there < here - 0.5 and there <= radius + APPROACH_END_M

@@ -119,8 +119,17 @@ def test_leaving_and_approaching() -> None:
     assert not paths.is_leaving(5.0, -1.75, math.pi, zone, c)  # westbound: approaching
     east = straight((-100.0, -1.75), 0.0, VMAX, 0.0)
     assert paths.is_approaching(-100.0, -1.75, east, zone, c, 150.0, 0.0, 10.0)
-    # entering beyond the horizon, but heading for the zone (a cautious plan ending short of it)
-    assert paths.is_approaching(-100.0, -1.75, east, zone, c, 150.0, 0.0, 6.0)
+    # entering beyond the horizon, but ending short of the zone (a cautious plan)
+    cautious = straight((-60.0, -1.75), 0.0, 5.0, 0.0)  # ends at x = -10: 10 m from the centre
+    assert paths.is_approaching(-60.0, -1.75, cautious, zone, c, 150.0, 0.0, 6.0)
+    # entering beyond the horizon and ending far from the zone: not (yet) approaching
+    assert not paths.is_approaching(-100.0, -1.75, east, zone, c, 150.0, 0.0, 6.0)
+    far = straight((-400.0, -1.75), 0.0, VMAX, 0.0)  # ends 261 m short, though closer
+    assert not paths.is_approaching(-400.0, -1.75, far, zone, c, 500.0, 0.0, 10.0)
+    edge = paths.APPROACH_END_M + math.hypot(3.5, 3.5)  # beyond the zone's circumradius
+    for margin, expected in ((0.5, True), (-0.5, False)):
+        ends_at = straight((-60.0, 0.0), 0.0, (60.0 - edge + margin) / 10.0, 0.0)
+        assert paths.is_approaching(-60.0, 0.0, ends_at, zone, c, 150.0, 0.0, 6.0) is expected
     away = straight((10.0, -1.75), 0.0, VMAX, 0.0)
     assert not paths.is_approaching(10.0, -1.75, away, zone, c, 150.0, 0.0, 10.0)
     assert not paths.is_approaching(-100.0, -1.75, east, zone, c, 90.0, 0.0, 10.0)  # coverage
