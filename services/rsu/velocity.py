@@ -113,7 +113,7 @@ def _track(path: VehiclePath, v_max: float, now: float, t_free: float) -> _Track
     ends_stopped = pts.shape[0] == 1 or not bool(keep[-1])
     kept = pts[keep]
     d = paths.segment_lengths(kept)
-    v_ap = np.clip(paths.segment_speeds(kept, float(path.speed)), 0.0, v_max)
+    v_ap = np.minimum(np.maximum(paths.segment_speeds(kept, float(path.speed)), 0.0), v_max)
     if ends_stopped:
         v_ap[-1] = 0.0
     t0 = float(pts[0, 2])

@@ -194,7 +194,7 @@ class AutonomousPlanner:
             # than comfortably from the current speed (the paper's smooth C_SLOW deceleration)
             target = np.interp(s, coordination.target_s, coordination.target_v)
             early = backward_pass(target, DS, lim.decel_comfort)
-            smooth = np.sqrt(np.clip(v0 * v0 - 2.0 * lim.decel_comfort * (s - s0), 0.0, None))
+            smooth = np.sqrt(np.maximum(v0 * v0 - 2.0 * lim.decel_comfort * (s - s0), 0.0))
             constraints.append(_Constraint(Reason.COORDINATED, np.maximum(early, smooth)))
         for crossing in self._crossings_ahead(s0):
             if not coordination.lift_caution and not self._clear_view(now, ego, crossing):

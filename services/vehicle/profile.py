@@ -44,7 +44,7 @@ def grid(s0: float, s_end: float, ds: float) -> FloatArray:
 
 def stop_cap(s: FloatArray, s_stop: float, decel: float) -> FloatArray:
     """Speed cap for stopping at ``s_stop`` braking at ``decel`` [m/s²]: √(2·a·d), 0 past it."""
-    return np.sqrt(2.0 * decel * np.clip(s_stop - s, 0.0, None))
+    return np.sqrt(2.0 * decel * np.maximum(s_stop - s, 0.0))
 
 
 def backward_pass(cap: FloatArray, ds: float, decel: float) -> FloatArray:
@@ -55,7 +55,7 @@ def backward_pass(cap: FloatArray, ds: float, decel: float) -> FloatArray:
     offs = 2.0 * decel * ds * np.arange(n, dtype=np.float64)
     # min over j >= i of (v2_j + offs_j) - offs_i
     rev = np.minimum.accumulate((v2 + offs)[::-1])[::-1]
-    out: FloatArray = np.sqrt(np.clip(rev - offs, 0.0, None))
+    out: FloatArray = np.sqrt(np.maximum(rev - offs, 0.0))
     return np.minimum(out, cap)
 
 
@@ -68,7 +68,7 @@ def forward_pass(cap: FloatArray, v0: float, ds: float, accel: float) -> FloatAr
     start = v0 * v0
     run = np.minimum.accumulate(np.concatenate(([start], v2 - offs))[1:])
     run = np.minimum(run, start)
-    out: FloatArray = np.sqrt(np.clip(run + offs, 0.0, None))
+    out: FloatArray = np.sqrt(np.maximum(run + offs, 0.0))
     return np.minimum(out, cap)
 
 

@@ -140,9 +140,9 @@ class Polyline:
         sa = np.asarray(s, dtype=np.float64)
         if np.any(np.isnan(sa)):
             raise ValueError("polyline: arc length is NaN")
-        sa = np.clip(sa, 0.0, self.length)
+        sa = np.minimum(np.maximum(sa, 0.0), self.length)
         idx = np.searchsorted(self.cumlen, sa, side="right") - 1
-        idx = np.clip(idx, 0, len(self._seglen) - 1)
+        idx = np.minimum(np.maximum(idx, 0), len(self._seglen) - 1)
         return idx, sa - self.cumlen[idx]
 
     def points_at(self, s: npt.ArrayLike) -> FloatArray:
@@ -188,7 +188,7 @@ class Polyline:
         a = self.points[:-1]
         rel = p[:, None, :] - a[None, :, :]  # (M, S, 2)
         t = np.einsum("msk,sk->ms", rel, self._unit)  # metres along each segment
-        t = np.clip(t, 0.0, self._seglen[None, :])
+        t = np.minimum(np.maximum(t, 0.0), self._seglen[None, :])
         diff = rel - t[..., None] * self._unit[None, :, :]
         dist2 = np.einsum("msk,msk->ms", diff, diff)
         i = np.argmin(dist2, axis=1)
@@ -558,7 +558,7 @@ def _point_segment_dist(pts: FloatArray, a: FloatArray, b: FloatArray) -> FloatA
     d = b - a
     dd = np.einsum("sk,sk->s", d, d)
     rel = pts[:, None, :] - a[None, :, :]
-    t = np.clip(np.einsum("msk,sk->ms", rel, d) / dd[None, :], 0.0, 1.0)
+    t = np.minimum(np.maximum(np.einsum("msk,sk->ms", rel, d) / dd[None, :], 0.0), 1.0)
     diff = rel - t[..., None] * d[None, :, :]
     out: FloatArray = np.sqrt(np.einsum("msk,msk->ms", diff, diff))
     return out
@@ -596,7 +596,7 @@ def _quad_vertex_edge_dist(p: FloatArray, q: FloatArray) -> FloatArray:
     d = q[:, _NEXT4] - q  # (P, 4, 2) edges
     dd = np.einsum("pek,pek->pe", d, d)
     rel = p[:, :, None, :] - a[:, None, :, :]  # (P, 4 vertices, 4 edges, 2)
-    t = np.clip(np.einsum("pvek,pek->pve", rel, d) / dd[:, None, :], 0.0, 1.0)
+    t = np.minimum(np.maximum(np.einsum("pvek,pek->pve", rel, d) / dd[:, None, :], 0.0), 1.0)
     diff = rel - t[..., None] * d[:, None, :, :]
     out: FloatArray = np.sqrt(np.einsum("pvek,pvek->pve", diff, diff).min(axis=(1, 2)))
     return out

@@ -677,7 +677,7 @@ class Scenario:
         if not self._lane_ids:
             return None
         rel = np.array([x, y]) - self._seg_a
-        t = np.clip(np.einsum("sk,sk->s", rel, self._seg_u), 0.0, self._seg_len)
+        t = np.minimum(np.maximum(np.einsum("sk,sk->s", rel, self._seg_u), 0.0), self._seg_len)
         diff = rel - t[:, None] * self._seg_u
         dist = np.hypot(diff[:, 0], diff[:, 1])
         dh = np.abs((heading - self._seg_head + math.pi) % (2.0 * math.pi) - math.pi)

@@ -108,6 +108,29 @@ def test_two_separate_collision_episodes() -> None:
     assert res.min_gap_m == 0.0
 
 
+@pytest.mark.parametrize("start_b", [0.1, 2.0])
+def test_batched_pair_checks_equal_step_by_step_checks(paper: Scenario, start_b: float) -> None:
+    """Exact distances are computed in batches; ``result()`` flushes. Reading the result
+    after every step (one pair check per step) must give the same collisions and gap."""
+    profiles = {"A": constant(10.0), "B": constant(10.0, t0=start_b)}
+    batched, stepwise = MetricsRecorder(paper), MetricsRecorder(paper)
+    for k in range(round(30.0 / DT) + 1):
+        t = k * DT
+        states = [truth(paper, vid, t, *prof(t)) for vid, prof in profiles.items()]
+        batched.record(t, states)
+        stepwise.record(t, states)
+        stepwise.result()
+    a, b = batched.result(), stepwise.result()
+    assert a.collision_events == b.collision_events
+    assert (a.min_gap_m, a.min_gap_t_s, a.min_gap_pair) == (
+        b.min_gap_m,
+        b.min_gap_t_s,
+        b.min_gap_pair,
+    )
+    assert a.collisions == (1 if start_b < 1.0 else 0)
+    assert 0.0 <= a.min_gap_m < 20.0 and a.min_gap_t_s is not None
+
+
 def test_passing_time_by_hand(paper: Scenario) -> None:
     # Constant 10 m/s: from s = 10 to s = 200 + 100 takes 29 s.
     res = simulate(paper, {"A": constant(10.0)}, 40.0)
