@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from enum import IntEnum
+from typing import Final
 
 import numpy as np
 import numpy.typing as npt
@@ -86,12 +87,13 @@ def _is_frozen(arr: FloatArray, ndim: int) -> bool:
     Such an array (the decoder makes them; another message's ``points`` is one)
     is taken as is: copying it again would cost more than decoding it.
     """
-    return (
-        arr.dtype == np.float64
-        and arr.ndim == ndim
-        and not arr.flags.writeable
-        and arr.flags.owndata
-    )
+    if arr.dtype is not _FLOAT64 or arr.ndim != ndim:
+        return False
+    flags = arr.flags
+    return not flags.writeable and flags.owndata
+
+
+_FLOAT64: Final = np.dtype(np.float64)
 
 
 def _frozen_points(
