@@ -81,6 +81,9 @@ class Header:
         return self.time_us / 1e6
 
 
+_FLOAT64: Final = np.dtype(np.float64)
+
+
 def _is_frozen(arr: FloatArray, ndim: int) -> bool:
     """Already a read-only float64 array of the right rank that owns its memory.
 
@@ -91,9 +94,6 @@ def _is_frozen(arr: FloatArray, ndim: int) -> bool:
         return False
     flags = arr.flags
     return not flags.writeable and flags.owndata
-
-
-_FLOAT64: Final = np.dtype(np.float64)
 
 
 def _frozen_points(

@@ -87,6 +87,7 @@ class ConvexZone:
     edges: FloatArray  # (K, 2): vertex k+1 - vertex k
     centroid: tuple[float, float]
     tol: float
+    radius: float  # [m] farthest vertex from the centroid
 
     @classmethod
     def of(cls, polygon: ConvexZone | npt.ArrayLike) -> ConvexZone:
@@ -100,7 +101,9 @@ class ConvexZone:
         arr.flags.writeable = False
         edges.flags.writeable = False
         tol = _EPS * max(1.0, float(np.abs(arr).max()))
-        return cls(arr, edges, polygon_centroid(arr), tol)
+        cx, cy = polygon_centroid(arr)
+        radius = float(np.hypot(arr[:, 0] - cx, arr[:, 1] - cy).max())
+        return cls(arr, edges, (cx, cy), tol, radius)
 
     def contains(self, xy: npt.ArrayLike) -> BoolArray:
         """Which points (M, 2+) lie inside or on the edge (vectorised)."""
@@ -259,5 +262,4 @@ def is_approaching(
     cx, cy = zone.centroid
     here = math.hypot(x - cx, y - cy)
     there = math.hypot(float(points[-1, 0]) - cx, float(points[-1, 1]) - cy)
-    radius = float(np.hypot(zone.vertices[:, 0] - cx, zone.vertices[:, 1] - cy).max())
-    return there < here - 0.5 and there <= radius + APPROACH_END_M
+    return there < here - 0.5 and there <= zone.radius + APPROACH_END_M

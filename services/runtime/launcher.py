@@ -229,7 +229,8 @@ def daemon_env(base: Mapping[str, str] | None = None) -> dict[str, str]:
     return env
 
 
-def _tail(path: Path, lines: int = TAIL_LINES) -> str:
+def tail_log(path: Path, lines: int = TAIL_LINES) -> str:
+    """The last ``lines`` lines of a daemon's log, for error messages."""
     try:
         text = path.read_text(errors="replace")
     except OSError:
@@ -478,7 +479,7 @@ def run(args: argparse.Namespace) -> int:
         if child.node == launcher.monitor and result is not None:
             continue  # its result was printed above
         rc = child.process.returncode
-        tail = _tail(child.log_path)
+        tail = tail_log(child.log_path)
         print(
             f"--- {child.node} (exit {rc}), last lines of {child.log_path}:\n{tail}",
             file=sys.stderr,

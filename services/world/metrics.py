@@ -365,24 +365,23 @@ class MetricsRecorder:
         the harness's largest cost otherwise), in step order, so the collision
         events and the minimum gap are exactly those of a step-by-step check.
         """
-        n = len(states)
-        cand = np.zeros(0, dtype=np.intp)
-        if n >= 2:
-            xy = np.array([(s.x, s.y) for s in states], dtype=np.float64)
-            rad = 0.5 * np.hypot([s.length for s in states], [s.width for s in states])
-            ii, jj = _pairs(n)
-            centre = np.hypot(*(xy[ii] - xy[jj]).T)
-            lb = centre - rad[ii] - rad[jj]
-            # the gap is at most the centre distance: a pending pair bounds the minimum too
-            bound = min(self._min_gap, self._pending_bound)
-            cand = np.flatnonzero((lb <= 0.0) | (lb < bound))
+        # x [m], y [m], heading [rad], length [m], width [m] per car
+        poses = np.array(
+            [(s.x, s.y, s.heading, s.length, s.width) for s in states], dtype=np.float64
+        ).reshape(-1, 5)
+        rad = 0.5 * np.hypot(poses[:, 3], poses[:, 4])
+        ii, jj = _pairs(len(states))  # none for fewer than two cars
+        centre = np.hypot(*(poses[ii, :2] - poses[jj, :2]).T)
+        lb = centre - rad[ii] - rad[jj]
+        # the gap is at most the centre distance: a pending pair bounds the minimum too
+        bound = min(self._min_gap, self._pending_bound)
+        cand = np.flatnonzero((lb <= 0.0) | (lb < bound))
         if cand.size == 0:
             # no pair is close: nothing overlaps now, which ends every pending overlap
             self._flush_pairs()
             self._overlap = set()
             return
         ids = [s.id for s in states]
-        poses = np.array([(s.x, s.y, s.heading, s.length, s.width) for s in states])
         ci, cj = ii[cand], jj[cand]
         names = [
             (ids[i], ids[j]) if ids[i] <= ids[j] else (ids[j], ids[i])

@@ -107,6 +107,7 @@ from services.runtime.launcher import (
     actor_commands,
     daemon_env,
     node_order,
+    tail_log,
 )
 from services.world.results import RunMode
 from services.world.scenario import Scenario, load_scenario
@@ -611,14 +612,6 @@ class LabSession:
             self.close_logs()
 
 
-def _tail(path: Path, lines: int = 15) -> str:
-    try:
-        text = path.read_text(errors="replace")
-    except OSError:
-        return "(no log)"
-    return "\n".join(text.splitlines()[-lines:])
-
-
 def _wait_start(path: Path, session: LabSession, timeout_s: float) -> dict[str, Any]:
     """Wait for the monitor's start file; ``LabError`` if a daemon dies or time runs out."""
     deadline = time.monotonic() + timeout_s
@@ -633,7 +626,7 @@ def _wait_start(path: Path, session: LabSession, timeout_s: float) -> dict[str, 
                 raise LabError(
                     f"{d.node} exited with code {rc} before the run started; last lines of "
                     f"{session.log_dir / (d.node + '.log')}:\n"
-                    + _tail(session.log_dir / f"{d.node}.log")
+                    + tail_log(session.log_dir / f"{d.node}.log", 15)
                 )
         if time.monotonic() > deadline:
             raise LabError(f"the run did not start within {timeout_s:g} s (see {session.log_dir})")
@@ -900,7 +893,7 @@ def run_lab(
         result = {"mode": str(run_mode), "policy": str(run_policy), "seed": seed,
                   "error": "the monitor wrote no result"}
         mon_log = out_dir / f"{MONITOR}.log"
-        notes.append(f"monitor log tail:\n{_tail(mon_log)}")
+        notes.append(f"monitor log tail:\n{tail_log(mon_log, 15)}")
     if notes:
         prior = result.get("error")
         result["error"] = "; ".join(notes) + (f" ({prior})" if prior else "")
