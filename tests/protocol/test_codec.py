@@ -25,6 +25,7 @@ from protocol import (
     Mode,
     ModeCommand,
     RsuBeacon,
+    codec,
     decode,
     encode,
     max_points,
@@ -167,11 +168,48 @@ def test_narrow_columns_are_chosen() -> None:
     assert len(encode(m)) == 17 + 5 + 20 + 12 + 119 * 2
 
 
-def test_decoded_arrays_are_read_only() -> None:
-    m = decode(bytes.fromhex(VECTORS["cp-slow"][1]))
-    assert isinstance(m, CoordinatedPath)
-    assert not m.points.flags.writeable
-    assert not m.speeds.flags.writeable
+@pytest.mark.parametrize("n", [0, 1, 2, 120])
+@pytest.mark.parametrize("kind", PATH_KINDS)
+def test_decoded_messages_are_what_their_constructors_make(kind: Kind, n: int) -> None:
+    # decode skips __init__ (codec._constructor): the result must still be a proper value,
+    # with read-only float64 arrays that own their memory, as __post_init__ would leave them
+    m = decode(encode(path_message(kind, n)))
+    assert isinstance(m, FuturePath | AutonomousPath | CoordinatedPath)
+    rebuilt = dataclasses.replace(m)  # runs __init__ and __post_init__
+    assert_same(m, rebuilt)
+    arrays = [m.points] + ([m.speeds] if isinstance(m, CoordinatedPath) else [])
+    for arr in arrays:
+        assert arr.dtype == np.float64
+        assert arr.flags.c_contiguous
+        assert not arr.flags.writeable
+        assert arr.flags.owndata or arr.size == 0
+    assert m.points.shape == (n, 3)
+    assert dataclasses.replace(m.header) == m.header
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        m.header.seq = 2  # type: ignore[misc]
+    with pytest.raises(ValueError, match="read-only"):
+        m.points[..., 0] = 1.0
+
+
+def test_codec_caches_stay_bounded_whatever_peers_send() -> None:
+    # ids and delta layouts are cached (codec speed); distinct senders must not grow them
+    for i in range(3 * codec._CACHE_MAX):
+        sender = f"car-{i}"
+        m = decode(encode(fp(header=header(sender=sender), points=wide_points(2 + i % 200))))
+        assert m.header.sender == sender
+    assert 0 < len(codec._ID_CACHE) <= codec._CACHE_MAX
+    assert 0 < len(codec._ID_STRS) <= codec._CACHE_MAX
+    assert 0 < len(codec._PLANS) <= codec._CACHE_MAX
+    with pytest.raises(EncodeError, match="invalid sender id"):
+        encode(fp(header=header(sender="car 1")))
+
+
+@pytest.mark.parametrize("name", ["mode_command", "rsu_beacon"])
+def test_decoded_small_messages_equal_their_rebuilt_selves(name: str) -> None:
+    m = decode(encode(sample_messages()[name]))
+    assert m == dataclasses.replace(m) == sample_messages()[name]
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        m.header = m.header  # type: ignore[misc]
 
 
 def test_bytearray_and_memoryview_decode() -> None:
