@@ -152,12 +152,27 @@ def max_points(kind: Kind | int) -> int:
         raise ValueError(f"unknown message kind {kind!r}") from None
 
 
+_CACHE_MAX: Final = 1024
+"""Entries of each codec cache (ids, delta layouts); a full cache is emptied."""
+
+_K = TypeVar("_K")
+_V = TypeVar("_V")
+
+
+def _remember(cache: dict[_K, _V], key: _K, value: _V) -> _V:
+    """Store ``value`` under ``key``, emptying ``cache`` first when full: whatever peers
+    send, no cache holds more than ``_CACHE_MAX`` entries."""
+    if len(cache) >= _CACHE_MAX:
+        cache.clear()
+    cache[key] = value
+    return value
+
+
 # ---------------------------------------------------------------- encoding
 
 
 _ID_CACHE: Final[dict[str, bytes]] = {}
 """Ids already validated and encoded; a car encodes the same few ids at 10 Hz."""
-_CACHE_MAX: Final = 1024
 
 
 def _id_bytes(value: str, what: str) -> bytes:
@@ -170,11 +185,7 @@ def _id_bytes(value: str, what: str) -> bytes:
             f"invalid {what} {value!r}: need 1..{MAX_ID_LEN} characters from [{ID_CHARS}]"
         )
     data = value.encode("ascii")
-    if type(value) is str:
-        if len(_ID_CACHE) >= _CACHE_MAX:
-            _ID_CACHE.clear()
-        _ID_CACHE[value] = data
-    return data
+    return _remember(_ID_CACHE, value, data) if type(value) is str else data
 
 
 def _fixed(value: float, scale: float, lo: int, hi: int, what: str, unit: str) -> int:
@@ -445,10 +456,7 @@ def _read_id(buf: bytes, off: int, length: int, what: str) -> str:
         return known
     if _ID_BYTES_RE.fullmatch(raw) is None:
         raise DecodeError(f"{what}: bytes outside [{ID_CHARS}]")
-    if len(_ID_STRS) >= _CACHE_MAX:
-        _ID_STRS.clear()
-    known = _ID_STRS[raw] = raw.decode("ascii")
-    return known
+    return _remember(_ID_STRS, raw, raw.decode("ascii"))
 
 
 _Plan = tuple[tuple[int, np.dtype[Any], int], ...]
@@ -473,10 +481,7 @@ def _delta_plan(n: int, widths: int, ncols: int) -> _Plan:
         if code:
             dtypes = _DTYPES_UNSIGNED if c == _T_COLUMN else _DTYPES_SIGNED
             columns.append((c, dtypes[code], (n - 1) * code))
-    if len(_PLANS) >= _CACHE_MAX:
-        _PLANS.clear()
-    plan = _PLANS[(n, widths, ncols)] = tuple(columns)
-    return plan
+    return _remember(_PLANS, (n, widths, ncols), tuple(columns))
 
 
 def _read_only(arr: FloatArray) -> FloatArray:
@@ -522,13 +527,12 @@ def _read_points(
         cm_s = rows[:, 3]
         if np.minimum.reduce(cm_s) < 0 or np.maximum.reduce(cm_s) > _MAX_SPEED_CM_S:
             raise DecodeError("path speeds out of range")
-        speeds = cm_s / 100.0
-        speeds.setflags(write=False)
+        speeds = _read_only(cm_s / 100.0)
         points = rows[:, :3] / _SCALE_ROW
     else:
         points = np.divide(rows, _SCALE_ROW, rows)
-    points.setflags(write=False)  # fresh and read-only: the message takes it without a copy
-    return points, speeds, off
+    # fresh and read-only: the message takes them without a copy
+    return _read_only(points), speeds, off
 
 
 def _enum(table: dict[int, Any], value: int, what: str) -> Any:

@@ -199,21 +199,27 @@ def lab_endpoints(lab: Lab, nodes: Sequence[str]) -> dict[str, Endpoints]:
 
 
 @contextlib.contextmanager
-def _interruptible() -> Iterator[None]:
-    """SIGINT and SIGTERM raise :class:`LabInterrupted` (main thread only)."""
+def _on_signals(handler: Callable[[int, FrameType | None], None]) -> Iterator[None]:
+    """``handler`` takes SIGINT and SIGTERM for the block (main thread only: elsewhere
+    Python cannot install handlers, and the block runs unchanged)."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-
-    def handler(signum: int, _frame: FrameType | None) -> None:
-        raise LabInterrupted(signum)
-
     previous = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
         yield
     finally:
         for s, h in previous.items():
             signal.signal(s, h)
+
+
+def _interruptible() -> contextlib.AbstractContextManager[None]:
+    """SIGINT and SIGTERM raise :class:`LabInterrupted` (main thread only)."""
+
+    def handler(signum: int, _frame: FrameType | None) -> None:
+        raise LabInterrupted(signum)
+
+    return _on_signals(handler)
 
 
 @contextlib.contextmanager
@@ -221,19 +227,8 @@ def _shielded() -> Iterator[list[int]]:
     """Hold SIGINT/SIGTERM while cleaning up (so a second Ctrl-C cannot leave debris);
     yields the list of signals that arrived meanwhile."""
     arrived: list[int] = []
-    if threading.current_thread() is not threading.main_thread():
+    with _on_signals(lambda signum, _frame: arrived.append(signum)):
         yield arrived
-        return
-
-    def handler(signum: int, _frame: FrameType | None) -> None:
-        arrived.append(signum)
-
-    previous = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        yield arrived
-    finally:
-        for s, h in previous.items():
-            signal.signal(s, h)
 
 
 # --------------------------------------------------------------------------- meter
