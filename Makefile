@@ -21,7 +21,9 @@ sysdeps:
 
 lint: install
 	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
 	$(BIN)/mypy
+	$(BIN)/lint-imports
 
 test: install sysdeps lint
 	$(BIN)/pytest -q

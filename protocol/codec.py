@@ -230,9 +230,7 @@ def _points(
     n = int(points.shape[0])
     cap = _MAX_POINTS[kind]
     if n > cap:
-        raise EncodeError(
-            f"{n} points: a {kind.name.lower()} carries at most {cap} (one datagram)"
-        )
+        raise EncodeError(f"{n} points: a {kind.name.lower()} carries at most {cap} (one datagram)")
     if n == 0:
         return 0, 0, b""
     if points.shape != (n, 3):
@@ -690,6 +688,12 @@ def decode(data: bytes | bytearray | memoryview) -> Message:
     except DecodeError:
         raise
     except (
-        struct.error, ValueError, TypeError, IndexError, OverflowError, KeyError, AttributeError
+        struct.error,
+        ValueError,
+        TypeError,
+        IndexError,
+        OverflowError,
+        KeyError,
+        AttributeError,
     ) as exc:
         raise DecodeError(f"malformed datagram: {exc}") from exc

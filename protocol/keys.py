@@ -134,9 +134,7 @@ def is_valid_id(value: object) -> bool:
 def validate_id(value: str, what: str = "id") -> str:
     """Return ``value`` if it is a valid id, else raise ``BadKey`` naming ``what``."""
     if not is_valid_id(value):
-        raise BadKey(
-            f"invalid {what} {value!r}: need 1..{MAX_ID_LEN} characters from [{ID_CHARS}]"
-        )
+        raise BadKey(f"invalid {what} {value!r}: need 1..{MAX_ID_LEN} characters from [{ID_CHARS}]")
     return value
 
 

@@ -46,18 +46,18 @@ from __future__ import annotations
 import math
 from collections.abc import Collection
 from dataclasses import dataclass
-from enum import StrEnum
 from typing import TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
 
 from protocol.messages import Mode, VehiclePath
+from services.model.types import Policy
 from services.rsu import paths
 from services.rsu.reservation import ReservationTable
 
 if TYPE_CHECKING:
-    from services.rsu.core import RsuConfig
+    from services.rsu.config import RsuConfig
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -66,13 +66,6 @@ _MAX_HOLDS = 20
 _VC_GRID = 24
 _VC_ROUNDS = 3
 _COARSE_STEP_S = 0.5
-
-
-class Policy(StrEnum):
-    """Velocity manager policy: the paper's, or ours (see module docstring)."""
-
-    PAPER = "paper"
-    SLOT = "slot"
 
 
 @dataclass(frozen=True, slots=True, eq=False)

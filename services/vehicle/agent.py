@@ -31,12 +31,12 @@ from protocol.messages import (
     ModeCommand,
     RsuBeacon,
 )
+from services.model.kinematics import BodyState, Limits, TruthState
+from services.model.scenario import Scenario
 from services.vehicle.coordination import Event, next_mode
 from services.vehicle.future_path import future_path_points
 from services.vehicle.planner import AutonomousPlanner, Coordination, Plan, Reason
 from services.vehicle.profile import FloatArray
-from services.world.kinematics import BodyState, Limits, TruthState
-from services.world.scenario import Scenario
 
 log = logging.getLogger("crosspath.vehicle")
 
@@ -296,3 +296,20 @@ class VehicleAgent:
         v_next = prof.speed_at(look + step)
         a_ff = (v_next * v_next - v_ref * v_ref) / (2.0 * step)
         return a_ff + (v_ref - body.v) / CONTROL_TIME_CONSTANT_S
+
+
+def vehicle_agent(scenario: Scenario, vehicle_id: str, v2x: bool) -> VehicleAgent:
+    """The pure autonomy stack of one car (shared with the vehicle daemon)."""
+    spec = scenario.vehicle(vehicle_id)
+    return VehicleAgent(
+        spec=VehicleSpec(
+            vehicle_id=spec.id,
+            route_id=spec.route,
+            goal_s=scenario.goal_m(vehicle_id),
+            length=spec.length_m,
+            width=spec.width_m,
+            limits=scenario.limits(vehicle_id),
+        ),
+        scenario=scenario,
+        v2x=v2x,
+    )

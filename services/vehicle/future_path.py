@@ -15,8 +15,8 @@ import functools
 
 import numpy as np
 
+from services.model.geometry import Polyline
 from services.vehicle.profile import FloatArray, SpeedProfile
-from services.world.geometry import Polyline
 
 MIN_SPACING_M = 0.1
 """Minimum distance between consecutive future-path points [m] (paper §IV-B)."""

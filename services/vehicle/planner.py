@@ -45,6 +45,9 @@ from enum import StrEnum
 import numpy as np
 
 from protocol.messages import FuturePath
+from services.model.geometry import Polyline, footprint, visible_mask
+from services.model.kinematics import Limits, TruthState
+from services.model.scenario import Crossing, Scenario
 from services.vehicle.profile import (
     FloatArray,
     SpeedProfile,
@@ -55,9 +58,6 @@ from services.vehicle.profile import (
     pass_times,
     stop_cap,
 )
-from services.world.geometry import Polyline, footprint, visible_mask
-from services.world.kinematics import Limits, TruthState
-from services.world.scenario import Crossing, Scenario
 
 DS = 0.5
 """Arc-length step of the speed profile [m]."""

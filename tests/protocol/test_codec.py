@@ -31,7 +31,7 @@ from protocol import (
     max_points,
 )
 from protocol.messages import FloatArray
-from services.runtime.bench.codec import sample_future_path, sample_messages
+from services.bench.codec import sample_future_path, sample_messages
 from tests.protocol.vectors import VECTORS, assert_close, assert_same
 
 LONG_ID = "v" * 32

@@ -111,8 +111,15 @@ def reference_decode(data: bytes) -> dict[str, Any]:
     out["sender"] = r.ident()
     out["kind"] = kind
     if kind in (1, 2):
-        for name, fmt in [("x", "i"), ("y", "i"), ("speed", "H"), ("heading", "h"),
-                          ("length", "H"), ("width", "H"), ("mode", "B")]:
+        for name, fmt in [
+            ("x", "i"),
+            ("y", "i"),
+            ("speed", "H"),
+            ("heading", "h"),
+            ("length", "H"),
+            ("width", "H"),
+            ("mode", "B"),
+        ]:
             out[name] = r.take(fmt)
         out["points"], _ = _ref_points(r, time_us, 3)
     elif kind == 3:
@@ -141,7 +148,10 @@ def test_reference_decoder_agrees(name: str) -> None:
     ref = reference_decode(bytes.fromhex(hex_))
     h = message.header
     assert (ref["kind"], ref["sender"], ref["seq"], ref["time_us"]) == (
-        message.kind, h.sender, h.seq, h.time_us,
+        message.kind,
+        h.sender,
+        h.seq,
+        h.time_us,
     )
     assert ref.get("auth", b"") == h.auth
     if isinstance(message, protocol.VehiclePath):
@@ -156,18 +166,22 @@ def test_reference_decoder_agrees(name: str) -> None:
         assert ref["speeds"] == message.speeds.tolist()
     elif isinstance(message, protocol.ModeCommand):
         assert (ref["vehicle"], ref["command"], ref["mode"]) == (
-            message.vehicle, message.command, message.mode,
+            message.vehicle,
+            message.command,
+            message.mode,
         )
     else:
         assert isinstance(message, protocol.RsuBeacon)
         assert ref["intersection"] == message.intersection
         assert (ref["x"] / 100, ref["y"] / 100, ref["radius"] / 100) == (
-            message.x, message.y, message.radius,
+            message.x,
+            message.y,
+            message.radius,
         )
 
 
 def test_reference_decoder_agrees_on_a_long_path() -> None:
-    from services.runtime.bench.codec import sample_messages
+    from services.bench.codec import sample_messages
 
     for message in sample_messages(120).values():
         data = encode(message)

@@ -28,7 +28,7 @@ from protocol import (
     max_points,
 )
 from protocol.messages import FloatArray
-from services.runtime.bench.codec import sample_messages
+from services.bench.codec import sample_messages
 from tests.protocol.vectors import VECTORS, assert_close
 
 ids = st.from_regex(r"[A-Za-z0-9_-]{1,32}", fullmatch=True)
@@ -79,8 +79,15 @@ def vehicle_paths(draw: st.DrawFn) -> Message:
     future = draw(st.booleans())
     pts, _ = draw(path_points(Kind.FUTURE_PATH, h.time_us))
     return (FuturePath if future else AutonomousPath)(
-        h, draw(coords), draw(coords), draw(st.floats(0, 100)), draw(st.floats(-100, 100)),
-        draw(st.floats(0.01, 50)), draw(st.floats(0.01, 10)), draw(st.sampled_from(Mode)), pts,
+        h,
+        draw(coords),
+        draw(coords),
+        draw(st.floats(0, 100)),
+        draw(st.floats(-100, 100)),
+        draw(st.floats(0.01, 50)),
+        draw(st.floats(0.01, 10)),
+        draw(st.sampled_from(Mode)),
+        pts,
     )
 
 

@@ -36,7 +36,13 @@ VECTORS: dict[str, tuple[Message, str]] = {
     "fp-basic": (
         FuturePath(
             Header("car-a", 1, 12_345_000),
-            -20.5, -1.75, 11.5, 0.0, 4.5, 1.8, Mode.AUTO,
+            -20.5,
+            -1.75,
+            11.5,
+            0.0,
+            4.5,
+            1.8,
+            Mode.AUTO,
             _a(
                 (-20.5, -1.75, 12.345),
                 (-19.35, -1.75, 12.445),
@@ -53,7 +59,13 @@ VECTORS: dict[str, tuple[Message, str]] = {
     "ap-wide": (
         AutonomousPath(
             Header("car-b", 4_000_000_000, 100_000_250),
-            1.75, -30.0, 13.89, 1.5708, 4.5, 1.8, Mode.C_SLOW,
+            1.75,
+            -30.0,
+            13.89,
+            1.5708,
+            4.5,
+            1.8,
+            Mode.C_SLOW,
             _a((1.75, -30.0, 100.00025), (2.0, -26.0, 100.30025), (1.5, -22.0, 100.60025)),
         ),
         (
@@ -65,7 +77,8 @@ VECTORS: dict[str, tuple[Message, str]] = {
     "cp-slow": (
         CoordinatedPath(
             Header("rsu-1", 42, 100_050_000),
-            "car-b", Mode.C_SLOW,
+            "car-b",
+            Mode.C_SLOW,
             _a((1.75, -30.0, 100.05), (1.75, -29.0, 100.15), (1.75, -28.1, 100.25)),
             _a(10.0, 9.0, 8.0),
         ),
@@ -76,28 +89,27 @@ VECTORS: dict[str, tuple[Message, str]] = {
     ),
     "mc-initiate": (
         ModeCommand(Header("rsu-1", 43, 100_050_000), "car-a", Command.INITIATE, Mode.C_FAST),
-        (
-            "cb0104002b00000050a4f60500000000057273752d31056361722d610102"
-        ),
+        ("cb0104002b00000050a4f60500000000057273752d31056361722d610102"),
     ),
     "mc-terminate": (
         ModeCommand(Header("rsu-1", 44, 120_000_000), "car-b", Command.TERMINATE, Mode.AUTO),
-        (
-            "cb0104002c000000000e270700000000057273752d31056361722d620200"
-        ),
+        ("cb0104002c000000000e270700000000057273752d31056361722d620200"),
     ),
     "beacon": (
         RsuBeacon(Header("rsu-1", 7, 5_000_000), "x-0", 5.0, -5.0, 150.0),
-        (
-            "cb01050007000000404b4c0000000000057273752d3103782d30f40100000cfe"
-            "ffff983a0000"
-        ),
+        ("cb01050007000000404b4c0000000000057273752d3103782d30f40100000cfeffff983a0000"),
     ),
     # one point, negative header time, and an authentication trailer (scheme 1, 4 bytes)
     "fp-auth": (
         FuturePath(
             Header("car_c", 0, -1_500_000, Flags.AUTH, bytes.fromhex("01deadbeef")),
-            0.0, 0.0, 0.0, -3.1415, 12.0, 2.55, Mode.C_FAST,
+            0.0,
+            0.0,
+            0.0,
+            -3.1415,
+            12.0,
+            2.55,
+            Mode.C_FAST,
             _a((0.0, 0.0, -1.5)),
         ),
         (

@@ -18,7 +18,9 @@ from protocol.messages import (
     ModeCommand,
     RsuBeacon,
 )
-from services.rsu.core import Outgoing, Policy, RsuConfig, RsuCore
+from services.model.types import Policy
+from services.rsu.config import RsuConfig
+from services.rsu.core import Outgoing, RsuCore
 
 ZONE = np.array([[-3.5, -3.5], [3.5, -3.5], [3.5, 3.5], [-3.5, 3.5]])
 VMAX = 50 / 3.6

@@ -8,10 +8,11 @@ import numpy as np
 import pytest
 
 from protocol.messages import AutonomousPath, Header, Mode
+from services.model.types import Policy
 from services.rsu import paths, velocity
-from services.rsu.core import RsuConfig
+from services.rsu.config import RsuConfig
 from services.rsu.reservation import ReservationTable
-from services.rsu.velocity import Policy, VelocityManager
+from services.rsu.velocity import VelocityManager
 
 ZONE = np.array([[-3.5, -3.5], [3.5, -3.5], [3.5, 3.5], [-3.5, 3.5]])
 VMAX = 50 / 3.6

@@ -4,7 +4,7 @@ from pathlib import Path
 
 import pytest
 
-from services.world.scenario import Scenario, load_scenario
+from services.model.scenario import Scenario, load_scenario
 
 ROOT = Path(__file__).resolve().parents[2]
 PAPER = ROOT / "scenarios" / "paper-blind-intersection.toml"

@@ -15,13 +15,13 @@ from protocol.messages import (
     Mode,
     ModeCommand,
 )
+from services.model.kinematics import TruthState
+from services.model.scenario import Scenario
+from services.model.types import Policy
+from services.rsu.config import rsu_config
 from services.rsu.core import RsuCore
-from services.rsu.velocity import Policy
-from services.runtime.sim import rsu_config, vehicle_agent
-from services.vehicle.agent import VehicleAgent
+from services.vehicle.agent import VehicleAgent, vehicle_agent
 from services.vehicle.planner import Reason
-from services.world.kinematics import TruthState
-from services.world.scenario import Scenario
 
 
 def truth(sc: Scenario, vid: str, s: float, v: float, t: float) -> TruthState:

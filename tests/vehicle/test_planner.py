@@ -11,9 +11,9 @@ import math
 import numpy as np
 
 from protocol.messages import FuturePath, Header, Mode
+from services.model.kinematics import TruthState
+from services.model.scenario import Scenario
 from services.vehicle.planner import AutonomousPlanner, Reason
-from services.world.kinematics import TruthState
-from services.world.scenario import Scenario
 
 CENTER_S = 200.0
 

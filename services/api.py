@@ -1,0 +1,1 @@
+"""The Python API (placeholder until the API lands)."""

@@ -1,0 +1,327 @@
+"""``crosspath rsu --config FILE``: one roadside unit as a daemon.
+
+The daemon drives the RSU's pure core (``services.rsu.core.RsuCore``, built
+with ``services.sim.harness.rsu_config`` exactly as the in-process harness
+does) on the run clock shared through the monitor's start message:
+
+- received: every car's future path (``{prefix}/v2x/fp/*``) and the autonomous
+  paths addressed to this RSU (``{prefix}/v2x/rsu/{me}/ap/*``); each decoded
+  one goes to ``RsuCore.on_message`` at its reception time, and what the core
+  returns is sent at once;
+- ``RsuCore.tick`` at ``params.planning_hz`` (10 Hz, run times ``k / 10``):
+  command repeats, expiry, and the beacon;
+- sent: mode commands and coordinated paths on ``{prefix}/v2x/rsu/{me}/cmd/{car}``
+  (only to the cars of the run), beacons on ``{prefix}/v2x/rsu/{me}/beacon``.
+
+The RSU takes part only in ``rsu``-mode runs that list it; otherwise it stays
+idle. When a run ends (the monitor's stop, or SIGTERM/SIGINT) it sends a
+termination (``ModeCommand`` TERMINATE, mode AUTO) to every car it holds in a
+coordinated mode or still has a command pending for, and repeats it
+:data:`TERMINATION_ROUNDS` times :data:`TERMINATION_INTERVAL_S` apart unless the
+car's future path already shows AUTO: the cars return to their autonomous
+planner instead of waiting out the coordinated-path timeout.
+
+Joining late: when the start message arrives after the run's epoch (the daemon
+was restarted during a run, which the monitor allows with ``expect_crash``), the
+RSU starts at the current planning step instead of replaying the past, and
+rebuilds its reservation table from the future paths the cars keep
+broadcasting.
+
+Its stats reports (``{prefix}/stats/{me}``) carry, beside the V2X counters:
+``boot`` (a random id per process, so the monitor tells a restarted RSU from
+the one before), ``joined_s`` (run time at which this process began the run),
+``table`` / ``table_size`` (the cars in the reservation table now),
+``vehicles_seen`` (distinct cars heard in coverage this run) and
+``table_log``, every change of the table's set of cars as ``[t, [cars]]`` (run
+time; at most :data:`TABLE_LOG_MAX` entries).
+
+Configuration (:class:`RsuDaemonConfig`): the common daemon settings
+(``node_id`` is the RSU id of the scenario), ``scenario``, and an optional
+``policy`` that overrides the start message's. The ``[time]`` table is not
+used: the monitor's start message sets the epoch and speed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import math
+import secrets
+import sys
+import time
+from collections.abc import Callable, Iterable
+from pathlib import Path
+from typing import Any, Final
+
+from protocol import Command, FuturePath, Header, Message, Mode, ModeCommand
+from protocol import keys as keyexpr
+from protocol.keys import ParsedKey, Stream
+from services.edge.clock import RunClock
+from services.edge.plumbing import StartRun, StatsReport
+from services.edge.settings import (
+    CommonDaemonConfig,
+    ConfigError,
+    add_common_arguments,
+    exit_on_config_error,
+)
+from services.edge.shell import (
+    END_MARGIN_S,
+    ActorDaemon,
+    DaemonShell,
+    load_daemon_config,
+    load_daemon_scenario,
+    run_daemon,
+    sleep_until,
+)
+from services.edge.transport import Transport
+from services.model.scenario import Scenario
+from services.model.types import Policy, RunMode
+from services.rsu.config import rsu_config
+from services.rsu.core import Outgoing, RsuCore
+
+__all__ = [
+    "TABLE_LOG_MAX",
+    "TERMINATION_INTERVAL_S",
+    "TERMINATION_ROUNDS",
+    "RsuDaemon",
+    "RsuDaemonConfig",
+    "configure",
+    "load_daemon",
+    "run",
+]
+
+TERMINATION_ROUNDS: Final = 3
+"""How often the final terminations are sent (best effort V2X can lose one)."""
+
+TERMINATION_INTERVAL_S: Final = 0.1
+"""Wall seconds between two rounds of final terminations."""
+
+TABLE_LOG_MAX: Final = 2000
+"""Most changes of the reservation table's cars kept per run for the stats reports."""
+
+
+class _RsuShell(DaemonShell):
+    """The daemon shell whose stats reports also carry the RSU's table (see module doc)."""
+
+    def __init__(
+        self,
+        config: CommonDaemonConfig,
+        service: str,
+        transport: Transport,
+        *,
+        time_fn: Callable[[], float],
+        extras: Callable[[], dict[str, Any]],
+    ) -> None:
+        super().__init__(config, service, transport, time_fn=time_fn)
+        self._extras = extras
+
+    def stats_report(self, final: bool) -> StatsReport:
+        report = super().stats_report(final)
+        snapshot = dict(report.snapshot)
+        snapshot.update(self._extras())
+        return StatsReport(report.node, report.run_id, report.final, snapshot)
+
+
+class RsuDaemonConfig(CommonDaemonConfig):
+    """Settings of ``crosspath rsu``: ``node_id`` is the RSU id of the scenario."""
+
+    scenario: Path
+    """The scenario file (the same on every host of a run)."""
+    policy: Policy | None = None
+    """Velocity manager policy; None: the one in the monitor's start message."""
+
+
+class RsuDaemon(ActorDaemon):
+    """One RSU: ``RsuCore`` behind a :class:`DaemonShell`."""
+
+    service = "rsu"
+
+    def __init__(
+        self,
+        config: RsuDaemonConfig,
+        scenario: Scenario,
+        transport: Transport | None = None,
+        *,
+        time_fn: Callable[[], float] = time.time,
+    ) -> None:
+        scenario.rsu(config.node_id)  # raises for an unknown RSU
+        super().__init__(config, scenario, transport, time_fn=time_fn)
+        # Same transport, a shell whose stats reports add the table (nothing is open yet).
+        self.shell = _RsuShell(
+            config, self.service, self.shell.transport, time_fn=time_fn, extras=self.table_stats
+        )
+        self.log = self.shell.log
+        self.boot = secrets.token_hex(6)
+        self.joined_s: float | None = None
+        self.table_log: list[tuple[float, tuple[str, ...]]] = []
+        self._table: tuple[str, ...] = ()
+        self._seen = 0
+        self.policy_override = config.policy
+        self.core: RsuCore | None = None
+        self.vehicles: frozenset[str] = frozenset()
+        self.reported: dict[str, Mode] = {}
+        """Each car's mode as its latest future path shows it."""
+        self.terminations_sent = 0
+        self._seq = 0
+
+    def subscribe(self) -> None:
+        p = self.prefix
+        self.shell.subscribe_v2x(keyexpr.all_future_paths(prefix=p), Stream.FP, self._on_v2x)
+        self.shell.subscribe_v2x(
+            keyexpr.all_autonomous_paths(self.node, prefix=p), Stream.AP, self._on_v2x
+        )
+
+    def takes_part(self, start: StartRun) -> bool:
+        return start.mode is RunMode.RSU and self.node in start.rsus
+
+    def _on_v2x(self, parsed: ParsedKey, message: Message, now: float) -> None:
+        if isinstance(message, FuturePath):
+            self.reported[message.header.sender] = message.mode
+        core = self.core
+        if core is not None:
+            self._send(core.on_message(now, message, parsed.rsu))
+            self._note_table(now)
+
+    def _note_table(self, now: float) -> None:
+        """Log a change of the set of cars in the reservation table (run time ``now``)."""
+        core = self.core
+        if core is None:
+            return
+        self._seen = core.counters["vehicles_seen"]
+        cars = tuple(sorted(core.table))
+        if cars != self._table:
+            self._table = cars
+            if len(self.table_log) < TABLE_LOG_MAX:
+                self.table_log.append((round(now, 4), cars))
+            self.log.debug("reservation table at %.3f s: %s", now, ", ".join(cars) or "empty")
+
+    def table_stats(self) -> dict[str, Any]:
+        """The extra fields of this RSU's stats reports (see the module docstring)."""
+        return {
+            "boot": self.boot,
+            "joined_s": self.joined_s,
+            "table": list(self._table),
+            "table_size": len(self._table),
+            "vehicles_seen": self._seen,
+            "table_log": [[t, list(cars)] for t, cars in self.table_log],
+        }
+
+    def _send(self, outgoing: Iterable[Outgoing]) -> None:
+        for og in outgoing:
+            if og.vehicle is None:
+                key = keyexpr.rsu_beacon(self.node, prefix=self.prefix)
+            elif og.vehicle in self.vehicles:
+                key = keyexpr.rsu_command(self.node, og.vehicle, prefix=self.prefix)
+            else:
+                continue
+            self.shell.publish_v2x(key, og.message)
+
+    async def episode(self, start: StartRun, clock: RunClock, halt: asyncio.Event) -> None:
+        sc = self.scenario
+        policy = self.policy_override or start.policy
+        core = RsuCore(rsu_config(sc, self.node, policy))
+        self.vehicles = frozenset(start.vehicles)
+        self.reported = {}
+        self.table_log = []
+        self._table = ()
+        self._seen = 0
+        self.core = core
+        dt = 1.0 / sc.params.planning_hz
+        limit = start.max_sim_s + END_MARGIN_S
+        # A daemon restarted during a run joins at the current step, not at step 0.
+        step = max(0, math.ceil(clock.now() / dt - 1e-9))
+        self.joined_s = round(step * dt, 4)
+        if step > 0:
+            self.log.warning("joining run %s late, at run time %.2f s", start.run_id, step * dt)
+        while True:
+            now = step * dt
+            if not await sleep_until(clock, now, halt):
+                break
+            if now > limit:
+                self._end(f"run time passed max_sim_s ({start.max_sim_s:g} s)")
+                break
+            self._send(core.tick(now))
+            self._note_table(now)
+            step += 1
+
+    def coordinated(self) -> list[str]:
+        """Cars of the run this RSU holds in a coordinated mode or still commands."""
+        core = self.core
+        if core is None:
+            return []
+        return [
+            v
+            for v in sorted(self.vehicles)
+            if core.mode_of(v) is not Mode.AUTO or core.pending(v) is not None
+        ]
+
+    async def on_episode_end(self, start: StartRun, clock: RunClock) -> None:
+        targets = self.coordinated()
+        self.core = None  # no more decisions; receptions still update ``reported``
+        for round_ in range(TERMINATION_ROUNDS):
+            if round_ > 0:
+                targets = [v for v in targets if self.reported.get(v) is not Mode.AUTO]
+            if not targets:
+                break
+            for vehicle in targets:
+                self._terminate(clock, vehicle)
+            self.log.info("terminations sent to %s (round %d)", ", ".join(targets), round_ + 1)
+            for vehicle in targets:
+                self.reported.pop(vehicle, None)
+            await asyncio.sleep(TERMINATION_INTERVAL_S)
+
+    def _terminate(self, clock: RunClock, vehicle: str) -> None:
+        self._seq = (self._seq + 1) & 0xFFFFFFFF
+        header = Header(sender=self.node, seq=self._seq, time_us=round(clock.now() * 1e6))
+        message = ModeCommand(header, vehicle, Command.TERMINATE, Mode.AUTO)
+        if self.shell.publish_v2x(
+            keyexpr.rsu_command(self.node, vehicle, prefix=self.prefix), message
+        ):
+            self.terminations_sent += 1
+
+
+# --------------------------------------------------------------------------- CLI
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    """Options of ``crosspath rsu``."""
+    add_common_arguments(parser)
+    group = parser.add_argument_group("rsu")
+    group.add_argument("--scenario", type=Path, metavar="FILE", help="scenario file (TOML)")
+    group.add_argument("--id", dest="node_id", metavar="RSU", help="RSU id (node_id)")
+    group.add_argument(
+        "--policy",
+        choices=[p.value for p in Policy],
+        help="velocity manager policy (default: the monitor's)",
+    )
+
+
+def load_daemon(args: argparse.Namespace) -> tuple[RsuDaemonConfig, Scenario]:
+    """Config and scenario from the command line; :class:`ConfigError` naming the field."""
+    extra: dict[str, object] = {}
+    if getattr(args, "scenario", None) is not None:
+        extra["scenario"] = str(args.scenario)
+    if getattr(args, "node_id", None):
+        extra["node_id"] = args.node_id
+    if getattr(args, "policy", None):
+        extra["policy"] = args.policy
+    config = load_daemon_config(RsuDaemonConfig, args, extra)
+    scenario = load_daemon_scenario(config.scenario)
+    if config.node_id not in {r.id for r in scenario.rsus}:
+        raise ConfigError([("node_id", f"no RSU {config.node_id!r} in scenario {scenario.name!r}")])
+    return config, scenario
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the RSU daemon until a signal; exit 2 on a configuration error."""
+    try:
+        config, scenario = load_daemon(args)
+    except ConfigError as exc:
+        return exit_on_config_error("rsu", exc)
+    return run_daemon(config, RsuDaemon(config, scenario))
+
+
+if __name__ == "__main__":  # pragma: no cover
+    _parser = argparse.ArgumentParser(prog="crosspath rsu")
+    configure(_parser)
+    sys.exit(run(_parser.parse_args()))

@@ -1,0 +1,705 @@
+"""The daemons' pub/sub edge: Zenoh for real runs, an in-memory bus for tests.
+
+This is the only module of crosspath that imports zenoh. Daemon shells talk to
+a :class:`Transport`: ``publish(key, payload, qos)``, ``subscribe(keyexpr,
+handler)``, liveliness tokens and watches. Handlers always run on the asyncio
+event loop thread, never on a Zenoh thread: the Zenoh callback only copies the
+key and the payload bytes and hands them over with ``loop.call_soon_threadsafe``
+(it never blocks and never raises; if the loop is closed the datagram is
+dropped and counted in ``dropped``).
+
+QoS (DESIGN.md, key expressions): ``protocol.keys.QOS`` says per stream how it
+is published; :func:`qos_for` (stream) and :func:`qos_for_key` (key) look it up.
+V2X streams are best effort and dropped under congestion (future paths also
+express: never batched), at priority DATA_HIGH; plumbing and statistics are
+reliable, block under congestion, at priority DATA.
+
+UDP for V2X, TCP for plumbing: Zenoh picks the *link* per message, not per
+publisher. Verified against zenoh 1.10 (``io/zenoh-transport/src/unicast/
+universal/tx.rs``, ``TransportUnicastUniversal::select``): among the links of
+the transport to a remote node, a message goes on a link whose reliability
+matches the message's (a UDP link is best effort, a TCP link reliable), else on
+any link. So when two nodes hold both a UDP and a TCP link, best-effort V2X
+datagrams travel over UDP and reliable plumbing over TCP. Two nodes hold more
+than one link only when ``transport/unicast/max_links`` > 1 (Zenoh's default is
+1: a single link, often TCP, carries everything) - hence
+``ZenohSettings.max_links`` defaults to 2. We checked it on loopback by counting
+the kernel's UDP datagrams and TCP segments (``/proc/net/snmp``) while two peers
+exchanged 500 messages of each kind: best effort went as 501 UDP datagrams and
+2 TCP segments, reliable as 0 UDP datagrams and 1000 TCP segments; with
+``max_links`` 1 both went over TCP. Recommended setup (``deploy/zenoh/``): each
+daemon is a peer listening on one ``udp/`` and one ``tcp/`` endpoint and
+connecting to both endpoints of a rendezvous node (another peer or a router);
+gossip scouting then opens direct UDP and TCP links between the peers. A
+*client* holds a single link to its router (it connects to the first endpoint
+that answers), so in client mode everything shares that link.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+import json
+import logging
+import threading
+from collections.abc import Callable
+from typing import Any, Final, Protocol
+
+import zenoh
+
+from protocol.keys import DEFAULT_PREFIX, QOS, Qos, Stream, parse
+from services.edge.settings import ZenohSettings
+
+__all__ = [
+    "RELIABLE_QOS",
+    "V2X_QOS",
+    "Handler",
+    "LivelinessHandler",
+    "MemoryBus",
+    "MemoryTransport",
+    "Qos",
+    "Subscription",
+    "Transport",
+    "TransportError",
+    "ZenohTransport",
+    "init_zenoh_logging",
+    "keyexpr_matches",
+    "qos_for",
+    "qos_for_key",
+    "validate_key",
+    "zenoh_config",
+]
+
+logger = logging.getLogger("crosspath.transport")
+
+Handler = Callable[[str, bytes], None]
+"""Receives (key, payload) on the event loop thread."""
+
+LivelinessHandler = Callable[[str, bool], None]
+"""Receives (token key, alive) on the event loop thread."""
+
+
+class TransportError(RuntimeError):
+    """The transport cannot do what was asked (not open, closed, Zenoh refused)."""
+
+
+V2X_QOS: Final = Qos(reliable=False, express=True, drop=True)
+"""Best effort, express, dropped under congestion: the radio (future paths)."""
+
+RELIABLE_QOS: Final = Qos(reliable=True, express=False, drop=False)
+"""Reliable, batched, blocking under congestion: simulation plumbing and stats."""
+
+
+def qos_for(stream: Stream | str) -> Qos:
+    """The publication QoS of a protocol stream (``protocol.keys.QOS``); ValueError if unknown."""
+    try:
+        return QOS[Stream(stream)]
+    except ValueError:
+        raise ValueError(f"unknown stream {stream!r}") from None
+
+
+def qos_for_key(key: str, prefix: str = DEFAULT_PREFIX) -> Qos:
+    """The QoS of a concrete crosspath key; ``protocol.keys.BadKey`` if it is not one."""
+    return QOS[parse(key, prefix=prefix).stream]
+
+
+# --------------------------------------------------------------------------- key expressions
+
+_FORBIDDEN = frozenset("#?$")
+
+
+def validate_key(key: str, *, wildcards: bool) -> str:
+    """Check a key (``wildcards=False``) or key expression (chunks ``*`` and ``**`` allowed).
+
+    crosspath uses a canonical subset of Zenoh key expressions: non-empty
+    ``/``-separated chunks, no ``#``, ``?`` or ``$``, wildcards only as whole chunks.
+    Raises ValueError.
+    """
+    if not key:
+        raise ValueError("empty key expression")
+    chunks = key.split("/")
+    for chunk in chunks:
+        if not chunk:
+            raise ValueError(f"key expression {key!r} has an empty chunk")
+        if chunk in ("*", "**"):
+            if not wildcards:
+                raise ValueError(f"key {key!r} must not contain wildcards")
+            continue
+        if "*" in chunk or _FORBIDDEN.intersection(chunk):
+            raise ValueError(f"key expression {key!r}: invalid chunk {chunk!r}")
+    for a, b in itertools.pairwise(chunks):
+        if a == "**" and b in ("*", "**"):
+            raise ValueError(f"key expression {key!r} is not canonical ({a}/{b})")
+    return key
+
+
+def keyexpr_matches(pattern: str, key: str) -> bool:
+    """Whether the concrete ``key`` is in the set ``pattern`` names.
+
+    ``*`` matches exactly one chunk, ``**`` zero or more chunks.
+    """
+    pat = pattern.split("/")
+    chunks = key.split("/")
+    # reachable[j]: pattern prefix consumed so far can match chunks[:j]
+    reachable = [False] * (len(chunks) + 1)
+    reachable[0] = True
+    for part in pat:
+        nxt = [False] * (len(chunks) + 1)
+        if part == "**":
+            seen = False
+            for j in range(len(chunks) + 1):
+                seen = seen or reachable[j]
+                nxt[j] = seen
+        else:
+            for j in range(len(chunks)):
+                if reachable[j] and (part == "*" or part == chunks[j]):
+                    nxt[j + 1] = True
+        reachable = nxt
+    return reachable[len(chunks)]
+
+
+# --------------------------------------------------------------------------- interface
+
+
+class Subscription(Protocol):
+    """A declared subscription, liveliness token or liveliness watch."""
+
+    @property
+    def key(self) -> str:
+        """The key expression it was declared on."""
+
+    def close(self) -> None:
+        """Undeclare it; idempotent, a no-op once the transport is closed."""
+
+
+class Transport(Protocol):
+    """What a daemon shell needs from the network."""
+
+    def open(self) -> None:
+        """Connect; bind to the running event loop unless one was given."""
+
+    def close(self) -> None:
+        """Undeclare everything, then disconnect; idempotent."""
+
+    def publish(self, key: str, payload: bytes, qos: Qos) -> None:
+        """Send one datagram on ``key`` (never blocks for V2X QoS)."""
+
+    def subscribe(self, keyexpr: str, handler: Handler) -> Subscription:
+        """Call ``handler(key, payload)`` on the loop for every datagram matching ``keyexpr``."""
+
+    def declare_liveliness(self, key: str) -> Subscription:
+        """Announce this node alive on ``key`` until closed (or the process dies)."""
+
+    def watch_liveliness(self, keyexpr: str, on_change: LivelinessHandler) -> Subscription:
+        """Call ``on_change(key, alive)`` for tokens matching ``keyexpr``, present ones first."""
+
+
+def _bind_loop(loop: asyncio.AbstractEventLoop | None) -> asyncio.AbstractEventLoop:
+    if loop is not None:
+        return loop
+    try:
+        return asyncio.get_running_loop()
+    except RuntimeError:
+        raise TransportError(
+            "open() needs a running event loop, or pass loop= to the constructor"
+        ) from None
+
+
+# --------------------------------------------------------------------------- Zenoh
+
+
+def zenoh_config(settings: ZenohSettings) -> zenoh.Config:
+    """Build a ``zenoh.Config``: the JSON5 file first, then the explicit settings.
+
+    Without ``config_file`` every field of ``settings`` applies (defaults too);
+    with one, only the fields set explicitly. ``options`` are applied last.
+    Raises TransportError when Zenoh rejects the file or a value.
+    """
+    explicit = settings.model_fields_set
+    try:
+        if settings.config_file is not None:
+            config = zenoh.Config.from_file(settings.config_file)
+        else:
+            config = zenoh.Config()
+
+        def wanted(name: str) -> bool:
+            return settings.config_file is None or name in explicit
+
+        if wanted("mode"):
+            config.insert_json5("mode", json.dumps(settings.mode))
+        if wanted("listen"):
+            config.insert_json5("listen/endpoints", json.dumps(settings.listen))
+        if wanted("connect"):
+            config.insert_json5("connect/endpoints", json.dumps(settings.connect))
+        if wanted("multicast_scouting"):
+            config.insert_json5(
+                "scouting/multicast/enabled", json.dumps(settings.multicast_scouting)
+            )
+        if wanted("max_links"):
+            config.insert_json5("transport/unicast/max_links", json.dumps(settings.max_links))
+        for path, value in settings.options.items():
+            config.insert_json5(path, json.dumps(value))
+    except zenoh.ZError as exc:
+        raise TransportError(f"invalid Zenoh configuration: {exc}") from None
+    return config
+
+
+def init_zenoh_logging(level: str = "warn") -> None:
+    """Let Zenoh (Rust) log to stdout at ``level`` unless ``RUST_LOG`` says otherwise."""
+    zenoh.init_log_from_env_or(level)
+
+
+class _Undeclarable(Protocol):
+    def undeclare(self) -> None: ...
+
+
+class _Closable(Protocol):
+    def close(self) -> None: ...
+
+
+class _ZenohHandle:
+    """One declared Zenoh entity (subscriber, liveliness token or watch)."""
+
+    __slots__ = ("_entity", "_owner", "active", "key")
+
+    def __init__(self, owner: ZenohTransport, key: str) -> None:
+        self._owner = owner
+        self.key = key
+        self.active = True
+        self._entity: _Undeclarable | None = None
+
+    def close(self) -> None:
+        self._owner._release(self)
+
+    def _undeclare(self) -> None:
+        self.active = False
+        entity, self._entity = self._entity, None
+        if entity is not None:
+            try:
+                entity.undeclare()
+            except zenoh.ZError as exc:
+                logger.warning("undeclaring %s failed: %s", self.key, exc)
+
+
+class ZenohTransport:
+    """A :class:`Transport` over one Zenoh session; safe to call from any thread."""
+
+    def __init__(
+        self, settings: ZenohSettings, loop: asyncio.AbstractEventLoop | None = None
+    ) -> None:
+        self.settings = settings
+        self._loop = loop
+        self._lock = threading.RLock()
+        self._session: zenoh.Session | None = None
+        self._closed = False
+        self._publishers: dict[tuple[str, Qos], zenoh.Publisher] = {}
+        self._handles: list[_ZenohHandle] = []
+        self.dropped = 0
+        """Datagrams received but not delivered (event loop closed, copy failed)."""
+
+    # -- life
+
+    def open(self) -> None:
+        with self._lock:
+            if self._closed:
+                raise TransportError("transport is closed; make a new one")
+            if self._session is not None:
+                return
+            self._loop = _bind_loop(self._loop)
+            config = zenoh_config(self.settings)
+            try:
+                self._session = zenoh.open(config)
+            except zenoh.ZError as exc:
+                raise TransportError(f"cannot open Zenoh session: {exc}") from None
+            logger.info(
+                "zenoh session %s open (mode %s, listen %s, connect %s)",
+                self._session.zid(),
+                self.settings.mode,
+                self.settings.listen,
+                self.settings.connect,
+            )
+
+    async def open_async(self) -> None:
+        """:meth:`open` in a worker thread, so scouting and connecting do not stall the loop."""
+        if self._loop is None:
+            self._loop = asyncio.get_running_loop()
+        await asyncio.to_thread(self.open)
+
+    def close(self) -> None:
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            handles, self._handles = self._handles, []
+            publishers, self._publishers = self._publishers, {}
+            session, self._session = self._session, None
+        for handle in handles:
+            handle._undeclare()
+        for (key, _), publisher in publishers.items():
+            entity: _Undeclarable = publisher  # zenoh's stub leaves undeclare() untyped
+            try:
+                entity.undeclare()
+            except zenoh.ZError as exc:
+                logger.warning("undeclaring publisher %s failed: %s", key, exc)
+        if session is not None:
+            closable: _Closable = session
+            try:
+                closable.close()
+            except zenoh.ZError as exc:
+                logger.warning("closing zenoh session failed: %s", exc)
+            logger.info("zenoh session closed")
+
+    @property
+    def is_open(self) -> bool:
+        """Open and not yet closed."""
+        return self._session is not None
+
+    def zid(self) -> str:
+        """This session's Zenoh id (hex)."""
+        return str(self._require_session().zid())
+
+    def links(self) -> list[tuple[str, str]]:
+        """(local, remote) locators of the session's current links, e.g. for diagnostics."""
+        return [(link.src, link.dst) for link in self._require_session().info.links()]
+
+    def _require_session(self) -> zenoh.Session:
+        session = self._session
+        if session is None:
+            raise TransportError("transport is closed" if self._closed else "transport not open")
+        return session
+
+    def __enter__(self) -> ZenohTransport:
+        self.open()
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        self.close()
+
+    # -- publishing
+
+    def publish(self, key: str, payload: bytes, qos: Qos) -> None:
+        """Send ``payload`` on ``key``; one Zenoh publisher per (key, QoS) is kept.
+
+        With reliable QoS this may block while the link's queue is full.
+        """
+        publisher = self._publishers.get((key, qos))
+        if publisher is None:
+            publisher = self._declare_publisher(key, qos)
+        try:
+            publisher.put(payload)
+        except zenoh.ZError as exc:
+            raise TransportError(f"publish on {key} failed: {exc}") from None
+
+    def _declare_publisher(self, key: str, qos: Qos) -> zenoh.Publisher:
+        validate_key(key, wildcards=False)
+        with self._lock:
+            session = self._require_session()
+            publisher = self._publishers.get((key, qos))
+            if publisher is None:
+                try:
+                    publisher = session.declare_publisher(
+                        key,
+                        congestion_control=(
+                            zenoh.CongestionControl.DROP
+                            if qos.drop
+                            else zenoh.CongestionControl.BLOCK
+                        ),
+                        priority=_zenoh_priority(qos),
+                        express=qos.express,
+                        reliability=(
+                            zenoh.Reliability.RELIABLE
+                            if qos.reliable
+                            else zenoh.Reliability.BEST_EFFORT
+                        ),
+                    )
+                except zenoh.ZError as exc:
+                    raise TransportError(f"cannot declare publisher on {key}: {exc}") from None
+                self._publishers[(key, qos)] = publisher
+            return publisher
+
+    # -- subscribing
+
+    def subscribe(self, keyexpr: str, handler: Handler) -> Subscription:
+        validate_key(keyexpr, wildcards=True)
+        with self._lock:
+            session = self._require_session()
+            loop = self._loop
+            if loop is None:  # cannot happen once open
+                raise TransportError("transport not open")
+            handle = _ZenohHandle(self, keyexpr)
+            deliver = self._deliverer(handle, handler)
+
+            def on_sample(sample: zenoh.Sample) -> None:
+                # Runs on a Zenoh thread: copy, hand over, never raise.
+                try:
+                    if sample.kind != zenoh.SampleKind.PUT:
+                        return
+                    key = str(sample.key_expr)
+                    data = sample.payload.to_bytes()
+                    loop.call_soon_threadsafe(deliver, key, data)
+                except Exception:
+                    self.dropped += 1
+
+            try:
+                handle._entity = session.declare_subscriber(keyexpr, on_sample)
+            except zenoh.ZError as exc:
+                raise TransportError(f"cannot subscribe to {keyexpr}: {exc}") from None
+            self._handles.append(handle)
+            return handle
+
+    def _deliverer(self, handle: _ZenohHandle, handler: Handler) -> Handler:
+        def deliver(key: str, data: bytes) -> None:
+            if not handle.active:
+                return
+            try:
+                handler(key, data)
+            except Exception:
+                logger.exception("handler for %s failed on a datagram from %s", handle.key, key)
+
+        return deliver
+
+    # -- liveliness
+
+    def declare_liveliness(self, key: str) -> Subscription:
+        validate_key(key, wildcards=False)
+        with self._lock:
+            session = self._require_session()
+            handle = _ZenohHandle(self, key)
+            try:
+                handle._entity = session.liveliness().declare_token(key)
+            except zenoh.ZError as exc:
+                raise TransportError(f"cannot declare liveliness token {key}: {exc}") from None
+            self._handles.append(handle)
+            return handle
+
+    def watch_liveliness(self, keyexpr: str, on_change: LivelinessHandler) -> Subscription:
+        validate_key(keyexpr, wildcards=True)
+        with self._lock:
+            session = self._require_session()
+            loop = self._loop
+            if loop is None:
+                raise TransportError("transport not open")
+            handle = _ZenohHandle(self, keyexpr)
+
+            def deliver(key: str, alive: bool) -> None:
+                if not handle.active:
+                    return
+                try:
+                    on_change(key, alive)
+                except Exception:
+                    logger.exception("liveliness handler for %s failed", keyexpr)
+
+            def on_sample(sample: zenoh.Sample) -> None:
+                try:
+                    alive = sample.kind == zenoh.SampleKind.PUT
+                    loop.call_soon_threadsafe(deliver, str(sample.key_expr), alive)
+                except Exception:
+                    self.dropped += 1
+
+            try:
+                handle._entity = session.liveliness().declare_subscriber(
+                    keyexpr, on_sample, history=True
+                )
+            except zenoh.ZError as exc:
+                raise TransportError(f"cannot watch liveliness {keyexpr}: {exc}") from None
+            self._handles.append(handle)
+            return handle
+
+    def _release(self, handle: _ZenohHandle) -> None:
+        with self._lock:
+            if handle not in self._handles:
+                handle.active = False
+                return
+            self._handles.remove(handle)
+        handle._undeclare()
+
+
+def _zenoh_priority(qos: Qos) -> zenoh.Priority:
+    """V2X (dropping) traffic goes ahead of plumbing when both share a link."""
+    return zenoh.Priority.DATA_HIGH if qos.drop else zenoh.Priority.DATA
+
+
+# --------------------------------------------------------------------------- in memory
+
+
+class MemoryBus:
+    """The shared medium of :class:`MemoryTransport` instances in one process."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._subscriptions: list[_MemoryHandle] = []
+        self._tokens: list[_MemoryHandle] = []
+        self._watches: list[_MemoryHandle] = []
+        self.published = 0
+        """Datagrams published on the bus so far."""
+
+    def _deliver(self, key: str, payload: bytes) -> None:
+        with self._lock:
+            self.published += 1
+            targets = [h for h in self._subscriptions if keyexpr_matches(h.key, key)]
+        for handle in targets:
+            handle.post(key, payload)
+
+    def _add_token(self, token: _MemoryHandle) -> None:
+        with self._lock:
+            self._tokens.append(token)
+            watches = [w for w in self._watches if keyexpr_matches(w.key, token.key)]
+        for watch in watches:
+            watch.post(token.key, True)
+
+    def _remove(self, handle: _MemoryHandle) -> None:
+        with self._lock:
+            was_token = handle in self._tokens
+            for registry in (self._subscriptions, self._tokens, self._watches):
+                if handle in registry:
+                    registry.remove(handle)
+            watches = (
+                [w for w in self._watches if keyexpr_matches(w.key, handle.key)]
+                if was_token
+                else []
+            )
+        for watch in watches:
+            watch.post(handle.key, False)
+
+    def _add_watch(self, watch: _MemoryHandle) -> None:
+        with self._lock:
+            self._watches.append(watch)
+            present = [t.key for t in self._tokens if keyexpr_matches(watch.key, t.key)]
+        for key in present:
+            watch.post(key, True)
+
+
+class _MemoryHandle:
+    """A subscription, token or watch on a :class:`MemoryBus`."""
+
+    __slots__ = ("active", "callback", "key", "owner")
+
+    def __init__(
+        self,
+        owner: MemoryTransport,
+        key: str,
+        callback: Callable[[str, Any], None] | None,
+    ) -> None:
+        self.owner = owner
+        self.key = key
+        self.callback = callback
+        self.active = True
+
+    def post(self, key: str, value: bytes | bool) -> None:
+        loop = self.owner._loop
+        if loop is None or loop.is_closed():
+            self.owner.dropped += 1
+            return
+        try:
+            running = asyncio.get_running_loop()
+        except RuntimeError:
+            running = None
+        if running is loop:
+            loop.call_soon(self._run, key, value)
+        else:
+            loop.call_soon_threadsafe(self._run, key, value)
+
+    def _run(self, key: str, value: bytes | bool) -> None:
+        if not self.active or self.callback is None:
+            return
+        try:
+            self.callback(key, value)
+        except Exception:
+            logger.exception("handler for %s failed on %s", self.key, key)
+
+    def close(self) -> None:
+        self.owner._release(self)
+
+
+class MemoryTransport:
+    """A :class:`Transport` on an in-process :class:`MemoryBus`: lossless, no Zenoh.
+
+    Delivery is asynchronous like Zenoh's (``loop.call_soon``), in publish order,
+    to every subscription whose key expression matches (``*``, ``**``). QoS is
+    accepted and ignored.
+    """
+
+    def __init__(
+        self, bus: MemoryBus | None = None, loop: asyncio.AbstractEventLoop | None = None
+    ) -> None:
+        self.bus = MemoryBus() if bus is None else bus
+        self._loop = loop
+        self._lock = threading.Lock()
+        self._open = False
+        self._closed = False
+        self._handles: list[_MemoryHandle] = []
+        self.dropped = 0
+        """Datagrams not delivered because this transport's loop was closed."""
+
+    def open(self) -> None:
+        with self._lock:
+            if self._closed:
+                raise TransportError("transport is closed; make a new one")
+            self._loop = _bind_loop(self._loop)
+            self._open = True
+
+    def close(self) -> None:
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            self._open = False
+            handles, self._handles = self._handles, []
+        for handle in handles:
+            handle.active = False
+            self.bus._remove(handle)
+
+    @property
+    def is_open(self) -> bool:
+        """Open and not yet closed."""
+        return self._open
+
+    def __enter__(self) -> MemoryTransport:
+        self.open()
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        self.close()
+
+    def _require_open(self) -> None:
+        if not self._open:
+            raise TransportError("transport is closed" if self._closed else "transport not open")
+
+    def publish(self, key: str, payload: bytes, qos: Qos) -> None:
+        validate_key(key, wildcards=False)
+        self._require_open()
+        self.bus._deliver(key, bytes(payload))
+
+    def _track(self, handle: _MemoryHandle) -> None:
+        with self._lock:
+            self._require_open()
+            self._handles.append(handle)
+
+    def subscribe(self, keyexpr: str, handler: Handler) -> Subscription:
+        validate_key(keyexpr, wildcards=True)
+        handle = _MemoryHandle(self, keyexpr, handler)
+        self._track(handle)
+        with self.bus._lock:
+            self.bus._subscriptions.append(handle)
+        return handle
+
+    def declare_liveliness(self, key: str) -> Subscription:
+        validate_key(key, wildcards=False)
+        handle = _MemoryHandle(self, key, None)
+        self._track(handle)
+        self.bus._add_token(handle)
+        return handle
+
+    def watch_liveliness(self, keyexpr: str, on_change: LivelinessHandler) -> Subscription:
+        validate_key(keyexpr, wildcards=True)
+        handle = _MemoryHandle(self, keyexpr, on_change)
+        self._track(handle)
+        self.bus._add_watch(handle)
+        return handle
+
+    def _release(self, handle: _MemoryHandle) -> None:
+        with self._lock:
+            if handle in self._handles:
+                self._handles.remove(handle)
+        handle.active = False
+        self.bus._remove(handle)

@@ -1,0 +1,641 @@
+"""Shared machinery of the ``crosspath experiment`` commands: trials, aggregates, tables, plots.
+
+An experiment is a set of *columns* (a run mode, a policy, a V2X channel) times a
+set of *trials*: trial ``i`` runs every column with seed ``base_seed + i``, so the
+columns of one trial share the scenario's random draws (the start offsets) and
+differ only by what the column changes.
+
+:func:`run_trials` runs trials either with the in-process harness in a process
+pool (:func:`run_in_process`, deterministic per seed) or with real daemons one
+after another (:class:`DaemonRunner`), showing a rich progress bar when attached to
+a terminal and one plain line per finished trial otherwise. A trial's outcome is
+the run result of DESIGN.md plus, when asked for, its per-tick trace (rows of
+``services.sim.harness.TRACE_FIELDS``).
+
+Everything else here is small and reusable: summaries of per-trial numbers,
+markdown tables, JSON output that can be compared across runs once wall-clock
+fields are stripped, per-vehicle views of a trace, and matplotlib (Agg) helpers.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import json
+import logging
+import math
+import multiprocessing
+import os
+import subprocess
+import sys
+import tempfile
+import time
+import traceback
+from collections.abc import Iterator, Mapping, Sequence
+from concurrent.futures import Future, ProcessPoolExecutor, as_completed
+from dataclasses import dataclass, field
+from functools import lru_cache
+from pathlib import Path
+from typing import Any, Protocol, TextIO
+
+import numpy as np
+import numpy.typing as npt
+from rich.console import Console
+from rich.progress import (
+    BarColumn,
+    MofNCompleteColumn,
+    Progress,
+    TextColumn,
+    TimeElapsedColumn,
+    TimeRemainingColumn,
+)
+
+from services.model.scenario import Scenario, load_scenario
+from services.model.types import Policy, RunMode
+from services.sim.harness import TRACE_FIELDS, SimOptions, Simulation
+from services.sim.membus import ChannelModel
+
+__all__ = [
+    "PROJECT_ROOT",
+    "VEHICLE_COLORS",
+    "WALL_CLOCK_KEYS",
+    "Column",
+    "DaemonRunner",
+    "ExperimentError",
+    "Runner",
+    "Stopwatch",
+    "Trial",
+    "TrialOutcome",
+    "VehicleTrace",
+    "binned_mean",
+    "collect_errors",
+    "fmt_num",
+    "fmt_signed_pct",
+    "markdown_table",
+    "pyplot",
+    "read_trace_csv",
+    "run_in_process",
+    "run_trials",
+    "split_trace",
+    "strip_wall_clock",
+    "summarize",
+    "trials_for",
+    "vehicle_color",
+    "write_json",
+    "write_trace_csv",
+]
+
+log = logging.getLogger("crosspath.experiment")
+
+FloatArray = npt.NDArray[np.float64]
+
+WALL_CLOCK_KEYS = frozenset({"wall_s", "speedup_vs_real_time", "timing"})
+"""Result keys that depend on the machine's speed, not on the seed: everything
+else in an in-process result is reproduced exactly by the same seed."""
+
+VEHICLE_COLORS = ("tab:green", "tab:orange", "tab:blue", "tab:red", "tab:purple", "tab:brown")
+"""Car colours in figures, in vehicle order (the paper draws car A green, car B orange)."""
+
+PROJECT_ROOT = Path(__file__).resolve().parents[3]
+"""The checkout holding ``services/`` (for running the CLI as a subprocess)."""
+
+
+class ExperimentError(RuntimeError):
+    """An experiment could not produce its results (a trial failed); bad arguments
+    raise ``ValueError``."""
+
+
+# --------------------------------------------------------------------------- trials
+
+
+@dataclass(frozen=True, slots=True)
+class Column:
+    """One column of an experiment: what every trial runs.
+
+    ``key`` is a short machine name (``rsu-slot``), ``title`` the heading shown in
+    tables and figures; ``loss`` [0..1], ``latency_s`` and ``jitter_s`` [s] set the
+    in-process V2X channel (the sim CLI's defaults).
+    """
+
+    key: str
+    title: str
+    mode: RunMode
+    policy: Policy = Policy.PAPER
+    loss: float = 0.0
+    latency_s: float = 0.002
+    jitter_s: float = 0.001
+
+    def channel(self) -> ChannelModel:
+        return ChannelModel(loss=self.loss, latency_s=self.latency_s, jitter_s=self.jitter_s)
+
+
+@dataclass(frozen=True, slots=True)
+class Trial:
+    """One run: a column with one seed. ``index`` counts trials from 0."""
+
+    column: Column
+    index: int
+    seed: int
+    scenario: str  # path of the scenario file
+    trace: bool = True
+
+
+TraceRow = tuple[Any, ...]
+
+
+@dataclass(frozen=True, slots=True)
+class TrialOutcome:
+    """What one trial produced: the run result (None if it failed, then ``error``
+    says why), the trace rows if recorded, and the wall time it took [s]."""
+
+    trial: Trial
+    result: dict[str, Any] | None
+    trace: tuple[TraceRow, ...] | None = None
+    error: str | None = None
+    wall_s: float = 0.0
+
+
+class Runner(Protocol):
+    """Runs one trial; must be picklable to run in a process pool."""
+
+    def __call__(self, trial: Trial) -> TrialOutcome: ...
+
+
+def trials_for(
+    columns: Sequence[Column],
+    scenario: str | Path,
+    trials: int,
+    base_seed: int,
+    *,
+    trace: bool = True,
+) -> list[Trial]:
+    """Every column x every trial, trial ``i`` with seed ``base_seed + i`` (column-major)."""
+    if isinstance(trials, bool) or not isinstance(trials, int) or trials < 1:
+        raise ValueError(f"trials must be an int >= 1, got {trials!r}")
+    if isinstance(base_seed, bool) or not isinstance(base_seed, int) or base_seed < 0:
+        raise ValueError(f"seed must be an int >= 0, got {base_seed!r}")
+    keys = [c.key for c in columns]
+    if len(set(keys)) != len(keys):
+        raise ValueError(f"duplicate column keys in {keys}")
+    path = str(Path(scenario))
+    return [
+        Trial(column=c, index=i, seed=base_seed + i, scenario=path, trace=trace)
+        for c in columns
+        for i in range(trials)
+    ]
+
+
+@lru_cache(maxsize=8)
+def _scenario(path: str) -> Scenario:
+    """A worker loads each scenario file once."""
+    return load_scenario(Path(path))
+
+
+def run_in_process(trial: Trial) -> TrialOutcome:
+    """One trial with the in-process harness (``services.sim.harness``).
+
+    Exceptions become the outcome's ``error`` so that one failing trial does not
+    hide the others' results.
+    """
+    t0 = time.perf_counter()
+    try:
+        sim = Simulation(
+            _scenario(trial.scenario),
+            SimOptions(
+                mode=trial.column.mode,
+                policy=trial.column.policy,
+                seed=trial.seed,
+                channel=trial.column.channel(),
+                trace=trial.trace,
+            ),
+        )
+        result = sim.run()
+    except Exception as exc:  # a trial's failure is reported, not raised in the worker
+        return TrialOutcome(
+            trial,
+            None,
+            error=_describe(exc),
+            wall_s=time.perf_counter() - t0,
+        )
+    trace = tuple(sim.trace_rows) if trial.trace else None
+    return TrialOutcome(trial, result, trace, None, time.perf_counter() - t0)
+
+
+def _describe(exc: BaseException) -> str:
+    """The exception and the innermost frame that raised it, on one line."""
+    tb = traceback.extract_tb(exc.__traceback__)
+    where = f" ({Path(tb[-1].filename).name}:{tb[-1].lineno})" if tb else ""
+    return f"{type(exc).__name__}: {exc}{where}"
+
+
+@dataclass(frozen=True, slots=True)
+class DaemonRunner:
+    """One trial with real daemons (one OS process per actor over Zenoh).
+
+    Runs the stable CLI contract ``crosspath up SCENARIO --mode M --policy P --seed N
+    --json OUT`` as a subprocess (the launcher has no call that returns a result
+    in-process: it owns signal handlers and child process groups, which belong in
+    a process of their own). ``speed`` is passed on as ``--speed`` (run seconds per
+    wall second) when set; ``run_dir_root`` gets one ``--run-dir`` per trial
+    (``{column}-seed{N}``, the daemons' logs) when ``up`` accepts it; ``timeout_s``
+    bounds one run in wall seconds. Daemon runs carry no per-tick trace unless
+    ``up`` offers ``--trace``.
+    """
+
+    speed: float | None = None
+    timeout_s: float = 600.0
+    run_dir_root: str | None = None
+    extra_args: tuple[str, ...] = ()
+
+    def __call__(self, trial: Trial) -> TrialOutcome:
+        t0 = time.perf_counter()
+        try:
+            result, trace = self._run_cli(trial)
+        except Exception as exc:
+            return TrialOutcome(trial, None, error=_describe(exc), wall_s=time.perf_counter() - t0)
+        return TrialOutcome(trial, result, trace, None, time.perf_counter() - t0)
+
+    def _run_cli(self, trial: Trial) -> tuple[dict[str, Any], tuple[TraceRow, ...] | None]:
+        with tempfile.TemporaryDirectory(prefix="crosspath-exp-") as tmp:
+            out = Path(tmp) / "result.json"
+            trace_path = Path(tmp) / "trace.csv"
+            cmd = [
+                sys.executable,
+                "-m",
+                "services.cli.main",
+                "up",
+                trial.scenario,
+                "--mode",
+                str(trial.column.mode),
+                "--policy",
+                str(trial.column.policy),
+                "--seed",
+                str(trial.seed),
+                "--json",
+                str(out),
+            ]
+            if self.speed is not None:
+                cmd += ["--speed", repr(self.speed)]
+            if self.run_dir_root is not None and _up_supports("--run-dir"):
+                run_dir = Path(self.run_dir_root) / f"{trial.column.key}-seed{trial.seed}"
+                cmd += ["--run-dir", str(run_dir)]
+            want_trace = trial.trace and _up_supports("--trace")
+            if want_trace:
+                cmd += ["--trace", str(trace_path)]
+            cmd += list(self.extra_args)
+            env = dict(os.environ)
+            env["PYTHONPATH"] = os.pathsep.join(
+                p for p in (str(PROJECT_ROOT), env.get("PYTHONPATH", "")) if p
+            )
+            proc = subprocess.run(
+                cmd,
+                capture_output=True,
+                text=True,
+                timeout=self.timeout_s,
+                env=env,
+                check=False,
+            )
+            if proc.returncode != 0 or not out.exists():
+                tail = (proc.stderr or proc.stdout).strip().splitlines()[-3:]
+                raise ExperimentError(
+                    f"crosspath up exited with {proc.returncode}: " + " | ".join(tail)
+                )
+            result: dict[str, Any] = json.loads(out.read_text())
+            trace = read_trace_csv(trace_path) if want_trace and trace_path.exists() else None
+            return result, trace
+
+
+@lru_cache(maxsize=4)
+def _up_supports(option: str) -> bool:
+    """Whether ``crosspath up`` accepts ``option`` (asked once, from its help)."""
+    try:
+        proc = subprocess.run(
+            [sys.executable, "-m", "services.cli.main", "up", "--help"],
+            capture_output=True,
+            text=True,
+            timeout=60,
+            cwd=PROJECT_ROOT,
+            check=False,
+        )
+    except (OSError, subprocess.TimeoutExpired):
+        return False
+    return proc.returncode == 0 and option in proc.stdout
+
+
+# --------------------------------------------------------------------------- progress
+
+
+class _Reporter(Protocol):
+    def advance(self, outcome: TrialOutcome) -> None: ...
+
+
+def _outcome_line(outcome: TrialOutcome) -> str:
+    t = outcome.trial
+    head = f"{t.column.key} seed {t.seed}"
+    if outcome.result is None:
+        return f"{head}: FAILED {outcome.error}"
+    mean = outcome.result.get("mean_passing_time_s")
+    mean_s = "-" if mean is None else f"{mean:.2f} s"
+    return (
+        f"{head}: mean passing {mean_s}, collisions {outcome.result.get('collisions')}"
+        f" ({outcome.wall_s:.2f} s)"
+    )
+
+
+@dataclass(slots=True)
+class _LineReporter:
+    total: int
+    stream: TextIO
+    done: int = 0
+
+    def advance(self, outcome: TrialOutcome) -> None:
+        self.done += 1
+        self.stream.write(f"[{self.done}/{self.total}] {_outcome_line(outcome)}\n")
+        self.stream.flush()
+
+
+@dataclass(slots=True)
+class _SilentReporter:
+    def advance(self, outcome: TrialOutcome) -> None:
+        if outcome.result is None:
+            log.warning("%s", _outcome_line(outcome))
+
+
+@contextlib.contextmanager
+def _reporter(total: int, description: str, enabled: bool, stream: TextIO) -> Iterator[_Reporter]:
+    if not enabled:
+        yield _SilentReporter()
+        return
+    if not stream.isatty():
+        yield _LineReporter(total, stream)
+        return
+    progress = Progress(
+        TextColumn("[bold]{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        TimeRemainingColumn(),
+        TextColumn("{task.fields[last]}"),
+        console=Console(file=stream),
+    )
+    with progress:
+        task = progress.add_task(description, total=total, last="")
+
+        @dataclass(slots=True)
+        class _Rich:
+            def advance(self, outcome: TrialOutcome) -> None:
+                progress.update(task, advance=1, last=_outcome_line(outcome))
+
+        yield _Rich()
+
+
+# --------------------------------------------------------------------------- running
+
+
+def run_trials(
+    trials: Sequence[Trial],
+    runner: Runner = run_in_process,
+    *,
+    jobs: int | None = None,
+    progress: bool = True,
+    description: str = "trials",
+    stream: TextIO | None = None,
+) -> list[TrialOutcome]:
+    """Run every trial, return the outcomes in the order of ``trials``.
+
+    ``jobs`` worker processes (default: the machine's cores; 1 runs in this
+    process, as daemon runs must). Workers are started by ``forkserver`` so that no
+    thread of this process (the progress bar's, a test runner's) is forked.
+    Progress goes to ``stream`` (default stderr): a rich bar on a terminal, one line
+    per trial otherwise, nothing with ``progress=False``.
+    """
+    out_stream = stream if stream is not None else sys.stderr
+    n_jobs = jobs if jobs is not None else (os.cpu_count() or 1)
+    if n_jobs < 1:
+        raise ValueError(f"jobs must be >= 1, got {n_jobs}")
+    n_jobs = min(n_jobs, max(len(trials), 1))
+    outcomes: list[TrialOutcome | None] = [None] * len(trials)
+    if n_jobs == 1:
+        with _reporter(len(trials), description, progress, out_stream) as rep:
+            for i, trial in enumerate(trials):
+                outcomes[i] = runner(trial)
+                rep.advance(outcomes[i])  # type: ignore[arg-type]
+    else:
+        methods = multiprocessing.get_all_start_methods()
+        ctx = multiprocessing.get_context("forkserver" if "forkserver" in methods else "spawn")
+        with ProcessPoolExecutor(max_workers=n_jobs, mp_context=ctx) as pool:
+            futures: dict[Future[TrialOutcome], int] = {
+                pool.submit(runner, trial): i for i, trial in enumerate(trials)
+            }
+            with _reporter(len(trials), description, progress, out_stream) as rep:
+                for fut in as_completed(futures):
+                    outcome = fut.result()
+                    outcomes[futures[fut]] = outcome
+                    rep.advance(outcome)
+    return [o for o in outcomes if o is not None]
+
+
+# --------------------------------------------------------------------------- aggregates
+
+
+def summarize(values: Sequence[float | None]) -> dict[str, Any]:
+    """Mean, sample standard deviation, min and max of the values that are not None.
+
+    ``n`` counts those values, ``missing`` the None ones; the statistics are None
+    when nothing was measured (std is 0.0 for a single value).
+    """
+    got = [float(v) for v in values if v is not None and math.isfinite(v)]
+    missing = len(values) - len(got)
+    if not got:
+        return {"n": 0, "missing": missing, "mean": None, "std": None, "min": None, "max": None}
+    arr = np.asarray(got, dtype=np.float64)
+    std = float(arr.std(ddof=1)) if arr.size > 1 else 0.0
+    return {
+        "n": int(arr.size),
+        "missing": missing,
+        "mean": round(float(arr.mean()), 4),
+        "std": round(std, 4),
+        "min": round(float(arr.min()), 4),
+        "max": round(float(arr.max()), 4),
+    }
+
+
+def strip_wall_clock(obj: Any, keys: frozenset[str] = WALL_CLOCK_KEYS) -> Any:
+    """A deep copy of a JSON-like value without the keys that depend on wall time."""
+    if isinstance(obj, Mapping):
+        return {k: strip_wall_clock(v, keys) for k, v in obj.items() if k not in keys}
+    if isinstance(obj, list | tuple):
+        return [strip_wall_clock(v, keys) for v in obj]
+    return obj
+
+
+def write_json(path: Path, obj: Any) -> None:
+    """Indented strict JSON (no NaN or infinity) with a final newline."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(obj, indent=2, allow_nan=False) + "\n")
+
+
+# --------------------------------------------------------------------------- text
+
+
+def fmt_num(x: float | None, unit: str = "", digits: int = 2) -> str:
+    """``12.35 s``; an en dash for a value that was not measured."""
+    if x is None or not math.isfinite(x):
+        return "–"
+    return f"{x:.{digits}f}{' ' + unit if unit else ''}"
+
+
+def fmt_signed_pct(x: float | None, digits: int = 1) -> str:
+    """``+1.8 %`` / ``−25.9 %`` (a real minus sign); an en dash when unknown."""
+    if x is None or not math.isfinite(x):
+        return "–"
+    text = f"{abs(x):.{digits}f} %"
+    if round(x, digits) == 0:
+        return f"±{text}"
+    return ("+" if x > 0 else "−") + text
+
+
+def markdown_table(
+    header: Sequence[str], rows: Sequence[Sequence[str]], align: Sequence[str] | None = None
+) -> str:
+    """A GitHub markdown table; ``align`` per column is ``l``, ``r`` or ``c``."""
+    n = len(header)
+    if any(len(r) != n for r in rows):
+        raise ValueError("every row needs one cell per header column")
+    marks = {"l": ":--", "r": "--:", "c": ":-:"}
+    al = list(align) if align is not None else ["l"] + ["r"] * (n - 1)
+    if len(al) != n or any(a not in marks for a in al):
+        raise ValueError("align needs one of l, r, c per column")
+
+    def line(cells: Sequence[str]) -> str:
+        return "| " + " | ".join(c.replace("|", "\\|") for c in cells) + " |"
+
+    return "\n".join([line(header), line([marks[a] for a in al]), *(line(r) for r in rows)])
+
+
+# --------------------------------------------------------------------------- traces
+
+
+@dataclass(frozen=True, slots=True)
+class VehicleTrace:
+    """One car's rows of a trace, as arrays in time order (units of ``TRACE_FIELDS``:
+    s, m, m/s, m/s²; ``reason`` the planner's reason, ``mode`` the coordination mode)."""
+
+    vehicle: str
+    t: FloatArray
+    s: FloatArray
+    x: FloatArray
+    y: FloatArray
+    speed: FloatArray
+    accel: FloatArray
+    reason: tuple[str, ...]
+    detail: tuple[str, ...]
+    mode: tuple[str, ...]
+
+    @property
+    def dt(self) -> float:
+        """The trace's step [s] (0 with fewer than two rows)."""
+        return float(np.median(np.diff(self.t))) if self.t.size > 1 else 0.0
+
+
+def split_trace(rows: Sequence[TraceRow]) -> dict[str, VehicleTrace]:
+    """Per-vehicle arrays from trace rows ``(t, vehicle, s, x, y, speed, accel, reason,
+    detail, mode)``, vehicles in the order they first appear."""
+    by: dict[str, list[TraceRow]] = {}
+    for row in rows:
+        by.setdefault(str(row[1]), []).append(row)
+    out: dict[str, VehicleTrace] = {}
+    for vid, rs in by.items():
+        rs.sort(key=lambda r: float(r[0]))
+
+        def col(i: int, rs: list[TraceRow] = rs) -> FloatArray:
+            return np.fromiter((float(r[i]) for r in rs), dtype=np.float64, count=len(rs))
+
+        out[vid] = VehicleTrace(
+            vehicle=vid,
+            t=col(0),
+            s=col(2),
+            x=col(3),
+            y=col(4),
+            speed=col(5),
+            accel=col(6),
+            reason=tuple(str(r[7]) for r in rs),
+            detail=tuple(str(r[8]) for r in rs),
+            mode=tuple(str(r[9]) for r in rs),
+        )
+    return out
+
+
+def write_trace_csv(path: Path, rows: Sequence[TraceRow]) -> None:
+    """A trace as CSV with the ``TRACE_FIELDS`` header (as ``crosspath sim --trace``)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(TRACE_FIELDS)
+        w.writerows(rows)
+
+
+def read_trace_csv(path: Path) -> tuple[TraceRow, ...]:
+    """Rows of a trace CSV, numbers as floats (the inverse of :func:`write_trace_csv`)."""
+    rows: list[TraceRow] = []
+    with path.open(newline="") as fh:
+        reader = csv.reader(fh)
+        header = next(reader, None)
+        if header is None:
+            return ()
+        for r in reader:
+            if len(r) < 10:
+                continue
+            rows.append((float(r[0]), r[1], *(float(v) for v in r[2:7]), r[7], r[8], r[9]))
+    return tuple(rows)
+
+
+def binned_mean(x: FloatArray, y: FloatArray, edges: FloatArray) -> FloatArray:
+    """Mean of ``y`` over the samples whose ``x`` falls in each bin (NaN where none)."""
+    idx = np.digitize(x, edges) - 1
+    ok = (idx >= 0) & (idx < edges.size - 1)
+    sums = np.bincount(idx[ok], weights=y[ok], minlength=edges.size - 1)
+    counts = np.bincount(idx[ok], minlength=edges.size - 1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out: FloatArray = np.where(counts > 0, sums / np.maximum(counts, 1), np.nan)
+    return out
+
+
+# --------------------------------------------------------------------------- plots
+
+
+def pyplot() -> Any:
+    """``matplotlib.pyplot`` on the non-interactive Agg backend (no display needed)."""
+    import matplotlib
+
+    matplotlib.use("Agg", force=True)
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def vehicle_color(index: int) -> str:
+    """The colour of the ``index``-th car (see :data:`VEHICLE_COLORS`)."""
+    return VEHICLE_COLORS[index % len(VEHICLE_COLORS)]
+
+
+@dataclass(slots=True)
+class Stopwatch:
+    """Wall time of named phases [s] (reported, never asserted)."""
+
+    phases: dict[str, float] = field(default_factory=dict)
+
+    @contextlib.contextmanager
+    def phase(self, name: str) -> Iterator[None]:
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.phases[name] = round(self.phases.get(name, 0.0) + time.perf_counter() - t0, 3)
+
+
+def collect_errors(outcomes: Sequence[TrialOutcome]) -> list[str]:
+    """One line per failed trial: column, seed and the error."""
+    return [
+        f"{o.trial.column.key} seed {o.trial.seed}: {o.error}" for o in outcomes if o.result is None
+    ]

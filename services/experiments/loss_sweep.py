@@ -1,0 +1,514 @@
+"""``crosspath experiment loss-sweep``: passing time and safety against packet loss, in the lab.
+
+Runs the ``rsu`` mode at each loss rate (default 0, 10, 30, 50, 80, 100 %) for
+N trials in the network lab (``services.supervise.lab.runner.run_lab``: one
+network namespace per daemon, ingress loss on every car's and RSU's air
+interface), trial ``i`` with seed ``base_seed + i`` at every loss, one run after
+another (daemon runs keep wall-clock time; parallel runs would compete for the
+CPU). For reference the same trials also run in the in-process harness with the
+same per-receiver loss (``ChannelModel(loss)``), and the stand-alone mode once
+per seed (what 100 % loss should converge to).
+
+Writes into the output directory:
+
+``results.json``
+    every lab run result (with its ``network`` and ``lab`` sections; no
+    per-step trace), the in-process results, per-loss aggregates, failures;
+``table.md``
+    per loss: average passing time (lab, in-process), collisions, min PET, min
+    gap, future-path delivery ratio, the loss measured by the nft rules, time
+    spent coordinated and on-air rate per car;
+``loss_sweep.png``
+    average passing time, collisions and min PET against loss.
+
+Decisions where the issue is silent: the min PET of a loss rate is the
+smallest over its trials (the worst case, as safety is read), the passing time
+the mean over trials of each run's mean over cars (± sample std). A failed
+trial is reported (``errors``) and left out of the aggregates; the command
+then exits 1 after writing what it has.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Final
+
+from services.experiments.common import (
+    Column,
+    Stopwatch,
+    Trial,
+    TrialOutcome,
+    collect_errors,
+    fmt_num,
+    markdown_table,
+    pyplot,
+    run_in_process,
+    run_trials,
+    summarize,
+    trials_for,
+    write_json,
+)
+from services.experiments.paper import DEFAULT_SCENARIO
+from services.model.scenario import ScenarioError, load_scenario
+from services.model.types import Policy, RunMode
+
+__all__ = [
+    "DEFAULT_LOSSES",
+    "DEFAULT_OUT",
+    "DEFAULT_TRIALS",
+    "LabRunner",
+    "aggregate",
+    "configure",
+    "loss_columns",
+    "parse_losses",
+    "render_table",
+    "run",
+    "run_sweep",
+]
+
+DEFAULT_LOSSES: Final = (0.0, 10.0, 30.0, 50.0, 80.0, 100.0)
+"""Loss rates swept by default [%]."""
+DEFAULT_TRIALS: Final = 3
+DEFAULT_OUT: Final = Path("results") / "loss-sweep"
+DEFAULT_SPEED: Final = 1.0
+
+
+def parse_losses(text: str) -> tuple[float, ...]:
+    """``"0,10,30"`` → ``(0.0, 10.0, 30.0)``; ``ValueError`` outside 0..100 or repeated."""
+    try:
+        values = tuple(float(v.strip().rstrip("%")) for v in text.split(",") if v.strip())
+    except ValueError:
+        raise ValueError(f"losses must be comma-separated percentages, got {text!r}") from None
+    if not values:
+        raise ValueError("no loss rate given")
+    bad = [v for v in values if not (math.isfinite(v) and 0.0 <= v <= 100.0)]
+    if bad:
+        raise ValueError(f"loss rates must be within 0..100 %, got {bad}")
+    if len(set(values)) != len(values):
+        raise ValueError(f"loss rates repeat: {text!r}")
+    return values
+
+
+def loss_columns(losses: Sequence[float], policy: Policy = Policy.PAPER) -> list[Column]:
+    """One ``rsu``-mode column per loss rate (``Column.loss`` is a probability)."""
+    return [Column(f"loss{p:g}", f"{p:g} %", RunMode.RSU, policy, loss=p / 100.0) for p in losses]
+
+
+@dataclass(frozen=True, slots=True)
+class LabRunner:
+    """Runs one trial in the network lab (a :class:`~services.experiments.common.Runner`).
+
+    The column's loss (probability) becomes the lab's ingress loss in percent;
+    ``burst`` and ``rate_mbit`` apply to every trial. Each trial's daemon logs go
+    to ``run_dir_root/<column>-seed<N>``. Ctrl-C is not swallowed: the lab is
+    torn down and the sweep stops.
+    """
+
+    speed: float = DEFAULT_SPEED
+    run_dir_root: str | None = None
+    burst: float | None = None
+    rate_mbit: float | None = None
+    timeout_s: float | None = None
+
+    def __call__(self, trial: Trial) -> TrialOutcome:
+        from services.supervise.lab.runner import run_lab
+
+        t0 = time.perf_counter()
+        run_dir = (
+            None
+            if self.run_dir_root is None
+            else Path(self.run_dir_root) / f"{trial.column.key}-seed{trial.seed}"
+        )
+        try:
+            result = run_lab(
+                trial.scenario,
+                trial.column.mode,
+                trial.column.policy,
+                trial.seed,
+                round(trial.column.loss * 100.0, 6),
+                burst=self.burst if trial.column.loss > 0 else None,
+                rate_mbit=self.rate_mbit,
+                speed=self.speed,
+                run_dir=run_dir,
+                timeout_s=self.timeout_s,
+            )
+        except Exception as exc:  # one failed trial is reported, not fatal to the sweep
+            return TrialOutcome(
+                trial, None, error=f"{type(exc).__name__}: {exc}", wall_s=time.perf_counter() - t0
+            )
+        wall = time.perf_counter() - t0
+        if result.get("error"):
+            return TrialOutcome(trial, None, error=str(result["error"]), wall_s=wall)
+        return TrialOutcome(trial, result, None, None, wall)
+
+
+# --------------------------------------------------------------------------- aggregates
+
+
+def _cars(result: Mapping[str, Any]) -> list[str]:
+    return list(result.get("vehicles", {}))
+
+
+def _lab_numbers(result: Mapping[str, Any]) -> dict[str, float | None]:
+    """Per-run lab figures: fp delivery, measured loss, coordinated time, on-air rates."""
+    network = result.get("network") or {}
+    fp = network.get("fp") if isinstance(network, Mapping) else None
+    lab = result.get("lab") or {}
+    air: Mapping[str, Any] = lab.get("air") or {}
+    radio = [n for n in lab.get("faults", {}).get("nodes", []) if n in air]
+    seen = sum(int(air[n].get("loss_seen", 0)) for n in radio)
+    dropped = sum(int(air[n].get("loss_dropped", 0)) for n in radio)
+    cars = [c for c in _cars(result) if c in air]
+    modes: Mapping[str, Any] = lab.get("modes") or {}
+
+    def mean(values: list[float]) -> float | None:
+        return sum(values) / len(values) if values else None
+
+    return {
+        "fp_delivery": None if not isinstance(fp, Mapping) else fp.get("delivery_ratio"),
+        "measured_loss_pct": 100.0 * dropped / seen if seen else None,
+        "coordinated_s": mean(
+            [float(modes[c]["coordinated_s"]) for c in _cars(result) if c in modes]
+        ),
+        "air_tx_kbps": mean([float(air[c]["tx_kbps"]) for c in cars if air[c].get("tx_kbps")]),
+        "v2x_tx_kbps": mean(
+            [float(air[c]["daemon_tx_kbps"]) for c in cars if air[c].get("daemon_tx_kbps")]
+        ),
+    }
+
+
+def aggregate(results: Sequence[Mapping[str, Any]], lab: bool) -> dict[str, Any]:
+    """Aggregates of one loss rate's runs (see the module docstring)."""
+    pets = [r.get("min_pet_s") for r in results]
+    gaps = [r.get("min_gap_m") for r in results]
+    out: dict[str, Any] = {
+        "runs": len(results),
+        "average_passing_time_s": summarize([r.get("mean_passing_time_s") for r in results]),
+        "collisions": sum(int(r.get("collisions", 0)) for r in results),
+        "runs_with_collision": sum(1 for r in results if int(r.get("collisions", 0)) > 0),
+        "all_finished": sum(1 for r in results if r.get("all_finished")),
+        "min_pet_s": min((p for p in pets if p is not None), default=None),
+        "mean_min_pet_s": summarize(pets)["mean"],
+        "min_gap_m": min((g for g in gaps if g is not None), default=None),
+    }
+    if lab:
+        numbers = [_lab_numbers(r) for r in results]
+        for key in (
+            "fp_delivery",
+            "measured_loss_pct",
+            "coordinated_s",
+            "air_tx_kbps",
+            "v2x_tx_kbps",
+        ):
+            out[key] = summarize([n[key] for n in numbers])["mean"]
+    return out
+
+
+def render_table(doc: Mapping[str, Any]) -> str:
+    """The sweep as a markdown table, one row per loss rate."""
+    header = [
+        "loss",
+        "avg passing (lab) [s]",
+        "avg passing (in-process) [s]",
+        "collisions",
+        "min PET [s]",
+        "min gap [m]",
+        "fp delivery",
+        "measured loss",
+        "coordinated [s/car]",
+        "air tx [kbps/car]",
+        "V2X payload [kbps/car]",
+    ]
+    rows: list[list[str]] = []
+    for col in doc["columns"]:
+        key = col["key"]
+        a = doc["aggregates"]["lab"].get(key, {})
+        s = doc["aggregates"]["in_process"].get(key, {})
+        pt = a.get("average_passing_time_s", {})
+        spt = s.get("average_passing_time_s", {})
+        std = pt.get("std")
+        rows.append(
+            [
+                col["title"],
+                fmt_num(pt.get("mean")) + ("" if std is None else f" ± {std:.2f}"),
+                fmt_num(spt.get("mean")),
+                f"{a.get('collisions', '–')} / {a.get('runs', 0)} runs",
+                fmt_num(a.get("min_pet_s")),
+                fmt_num(a.get("min_gap_m")),
+                fmt_num(a.get("fp_delivery"), digits=3),
+                fmt_num(a.get("measured_loss_pct"), "%", 1),
+                fmt_num(a.get("coordinated_s"), digits=1),
+                fmt_num(a.get("air_tx_kbps"), digits=1),
+                fmt_num(a.get("v2x_tx_kbps"), digits=1),
+            ]
+        )
+    ref = doc.get("standalone_reference", {}).get("average_passing_time_s", {}).get("mean")
+    table = markdown_table(header, rows)
+    notes = [
+        f"`rsu` mode, policy {doc['policy']}, {doc['trials']} trial(s) per loss (seeds "
+        f"{doc['base_seed']}..{doc['base_seed'] + doc['trials'] - 1}), lab at speed "
+        f"{doc['speed']:g}; ingress loss on every car and RSU (per receiver).",
+        f"Stand-alone (no V2X, in-process, same seeds): average passing {fmt_num(ref)} s.",
+        "min PET: smallest over the trials; measured loss: packets dropped by the nft rules "
+        "over packets they saw; air tx: interface bytes (all headers, one copy per "
+        "receiver) per run second; V2X payload: the daemons' own count.",
+    ]
+    return table + "\n\n" + "\n".join(f"- {n}" for n in notes) + "\n"
+
+
+def plot_sweep(doc: Mapping[str, Any], path: Path, dpi: int = 110) -> None:
+    """Average passing time, collisions and min PET against loss (lab and in-process)."""
+    plt = pyplot()
+    cols = doc["columns"]
+    x = [100.0 * float(c["loss"]) for c in cols]
+    fig, axes = plt.subplots(1, 3, figsize=(12.0, 3.6))
+
+    def series(harness: str, key: str, field: str | None = None) -> list[float]:
+        out: list[float] = []
+        for c in cols:
+            a = doc["aggregates"][harness].get(c["key"], {})
+            v = a.get(key)
+            if field is not None and isinstance(v, Mapping):
+                v = v.get(field)
+            out.append(float("nan") if v is None else float(v))
+        return out
+
+    ax = axes[0]
+    mean = series("lab", "average_passing_time_s", "mean")
+    std = [0.0 if math.isnan(s) else s for s in series("lab", "average_passing_time_s", "std")]
+    ax.errorbar(x, mean, yerr=std, marker="o", capsize=3, label="lab (daemons)")
+    ax.plot(
+        x,
+        series("in_process", "average_passing_time_s", "mean"),
+        "s--",
+        alpha=0.7,
+        label="in-process",
+    )
+    ref = doc.get("standalone_reference", {}).get("average_passing_time_s", {}).get("mean")
+    if ref is not None:
+        ax.axhline(ref, color="grey", ls=":", label="stand-alone")
+    ax.set_ylabel("average passing time [s]")
+    ax.legend(fontsize=8)
+    ax = axes[1]
+    width = 3.0
+    ax.bar([v - width / 2 for v in x], series("lab", "collisions"), width, label="lab")
+    ax.bar(
+        [v + width / 2 for v in x],
+        series("in_process", "collisions"),
+        width,
+        label="in-process",
+        alpha=0.7,
+    )
+    for v, c in zip(x, series("lab", "collisions"), strict=True):
+        if c == c:  # not NaN
+            ax.annotate(f"{c:g}", (v - width / 2, c), ha="center", va="bottom", fontsize=8)
+    ax.set_ylabel(f"collisions (sum over {doc['trials']} trials)")
+    ax.set_ylim(bottom=0, top=max(1.0, *[v for v in series("lab", "collisions") if v == v]))
+    ax.legend(fontsize=8)
+    ax = axes[2]
+    ax.plot(x, series("lab", "min_pet_s"), "o-", label="lab (min over trials)")
+    ax.plot(x, series("in_process", "min_pet_s"), "s--", alpha=0.7, label="in-process")
+    ax.set_ylabel("min PET [s]")
+    ax.set_ylim(bottom=0)
+    ax.legend(fontsize=8)
+    for ax in axes:
+        ax.set_xlabel("air packet loss [%]")
+        ax.grid(True, lw=0.3, alpha=0.5)
+    fig.suptitle(f"{doc['scenario_name']}: rsu mode against packet loss", fontsize=10)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+
+
+# --------------------------------------------------------------------------- the sweep
+
+
+def run_sweep(
+    scenario_path: str | Path = DEFAULT_SCENARIO,
+    losses: Sequence[float] = DEFAULT_LOSSES,
+    trials: int = DEFAULT_TRIALS,
+    seed: int = 0,
+    out_dir: str | Path = DEFAULT_OUT,
+    *,
+    speed: float = DEFAULT_SPEED,
+    policy: Policy = Policy.PAPER,
+    burst: float | None = None,
+    rate_mbit: float | None = None,
+    timeout_s: float | None = None,
+    progress: bool = True,
+) -> dict[str, Any]:
+    """Run the sweep and write ``results.json``, ``table.md`` and ``loss_sweep.png``.
+
+    Returns the document written as ``results.json`` (its ``errors`` lists failed
+    trials). Raises ``ValueError`` for bad arguments, ``ScenarioError`` for an
+    unusable scenario, ``LabInterrupted`` on Ctrl-C (nothing is written then).
+    """
+    watch = Stopwatch()
+    t0 = time.perf_counter()
+    scenario_file = Path(scenario_path)
+    scenario = load_scenario(scenario_file)
+    if not (0.0 < speed <= 1000.0):
+        raise ValueError(f"speed must be in (0, 1000], got {speed}")
+    columns = loss_columns(losses, policy)
+    out = Path(out_dir)
+    plan = trials_for(columns, scenario_file, trials, seed, trace=False)
+    runner = LabRunner(speed, str(out / "runs"), burst, rate_mbit, timeout_s)
+    with watch.phase("lab_s"):
+        lab_outcomes = run_trials(
+            plan, runner, jobs=1, progress=progress, description="loss sweep (lab)"
+        )
+    with watch.phase("in_process_s"):
+        sim_outcomes = run_trials(plan, run_in_process, progress=False)
+        standalone = [Column("standalone", "Stand-alone", RunMode.STANDALONE)]
+        ref_outcomes = run_trials(
+            trials_for(standalone, scenario_file, trials, seed, trace=False),
+            run_in_process,
+            progress=False,
+        )
+    errors = collect_errors(lab_outcomes) + collect_errors(sim_outcomes + ref_outcomes)
+
+    def by_column(outcomes: Sequence[TrialOutcome]) -> dict[str, list[dict[str, Any]]]:
+        runs: dict[str, list[dict[str, Any]]] = {c.key: [] for c in columns}
+        for o in outcomes:
+            if o.result is not None:
+                runs.setdefault(o.trial.column.key, []).append(o.result)
+        return runs
+
+    lab_runs = by_column(lab_outcomes)
+    sim_runs = by_column(sim_outcomes)
+    ref_results = [o.result for o in ref_outcomes if o.result is not None]
+    doc: dict[str, Any] = {
+        "experiment": "loss-sweep",
+        "scenario": str(scenario_file),
+        "scenario_name": scenario.name,
+        "harness": "lab",
+        "mode": str(RunMode.RSU),
+        "policy": str(policy),
+        "trials": trials,
+        "base_seed": seed,
+        "speed": speed,
+        "losses_pct": list(losses),
+        "burst": burst,
+        "rate_mbit": rate_mbit,
+        "columns": [{"key": c.key, "title": c.title, "loss": c.loss} for c in columns],
+        "aggregates": {
+            "lab": {k: aggregate(v, lab=True) for k, v in lab_runs.items()},
+            "in_process": {k: aggregate(v, lab=False) for k, v in sim_runs.items()},
+        },
+        "standalone_reference": aggregate(ref_results, lab=False),
+        "errors": errors,
+        "runs": {
+            "lab": lab_runs,
+            "in_process": sim_runs,
+            "standalone_in_process": ref_results,
+        },
+    }
+    out.mkdir(parents=True, exist_ok=True)
+    with watch.phase("figures_s"):
+        plot_sweep(doc, out / "loss_sweep.png")
+    doc["timing"] = {
+        "wall_s": round(time.perf_counter() - t0, 3),
+        "sum_of_lab_run_wall_s": round(sum(o.wall_s for o in lab_outcomes), 3),
+        **watch.phases,
+    }
+    (out / "table.md").write_text(render_table(doc))
+    write_json(out / "results.json", doc)
+    return doc
+
+
+# --------------------------------------------------------------------------- CLI
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    """Options of ``crosspath experiment loss-sweep``."""
+    parser.add_argument(
+        "--out", type=Path, default=DEFAULT_OUT, help="output directory (results/loss-sweep)"
+    )
+    parser.add_argument(
+        "--trials", type=int, default=DEFAULT_TRIALS, help="trials per loss rate (default 3)"
+    )
+    parser.add_argument(
+        "--losses",
+        default=",".join(f"{v:g}" for v in DEFAULT_LOSSES),
+        help="loss rates in percent, comma-separated (default 0,10,30,50,80,100)",
+    )
+    parser.add_argument(
+        "--speed",
+        type=float,
+        default=DEFAULT_SPEED,
+        help="run seconds per wall second of the lab runs (default 1; 2-4 for a quick look)",
+    )
+    parser.add_argument(
+        "--seed", type=int, default=0, help="base seed: trial i uses seed + i (default 0)"
+    )
+    parser.add_argument("--policy", choices=[p.value for p in Policy], default=Policy.PAPER.value)
+    parser.add_argument(
+        "--scenario", type=Path, default=DEFAULT_SCENARIO, help="scenario file (TOML)"
+    )
+    parser.add_argument(
+        "--burst", type=float, default=None, help="mean loss burst in packets (Gilbert model)"
+    )
+    parser.add_argument(
+        "--rate", type=float, default=None, help="air rate limit of every car and RSU [Mbit/s]"
+    )
+    parser.add_argument(
+        "--timeout", type=float, default=None, help="wall s per run (default max_sim / speed + 60)"
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    """The sweep; 0 when every trial ran, 1 when some failed, 2 on bad arguments."""
+    from services.supervise.lab.netns import prerequisites
+    from services.supervise.lab.runner import LabInterrupted
+
+    name = "crosspath experiment loss-sweep"
+    try:
+        losses = parse_losses(args.losses)
+    except ValueError as exc:
+        print(f"{name}: {exc}", file=sys.stderr)
+        return 2
+    if args.trials < 1 or args.seed < 0:
+        print(f"{name}: --trials must be >= 1 and --seed >= 0", file=sys.stderr)
+        return 2
+    missing = prerequisites()
+    if missing:
+        print(f"{name}: the lab needs {', '.join(missing)} (run as root)", file=sys.stderr)
+        return 2
+    try:
+        doc = run_sweep(
+            args.scenario,
+            losses,
+            args.trials,
+            args.seed,
+            args.out,
+            speed=args.speed,
+            policy=Policy(args.policy),
+            burst=args.burst,
+            rate_mbit=args.rate,
+            timeout_s=args.timeout,
+        )
+    except (ScenarioError, ValueError) as exc:
+        print(f"{name}: {exc}", file=sys.stderr)
+        return 2
+    except LabInterrupted as exc:
+        print(f"{name}: interrupted ({exc}); nothing written", file=sys.stderr)
+        return 128 + exc.signum
+    print(render_table(doc))
+    print(
+        f"{len(losses)} loss rates x {args.trials} trial(s) in {doc['timing']['wall_s']:.0f} s;"
+        f" wrote results.json, table.md and loss_sweep.png to {args.out}"
+    )
+    if doc["errors"]:
+        print(
+            f"{name}: {len(doc['errors'])} trial(s) failed:\n  " + "\n  ".join(doc["errors"]),
+            file=sys.stderr,
+        )
+        return 1
+    return 0

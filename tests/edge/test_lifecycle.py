@@ -1,0 +1,136 @@
+"""Service lifecycle: graceful stop on the first signal, forced exit on the second."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from services.edge.lifecycle import EXIT_FAILED, EXIT_OK, serve
+from services.edge.logs import JsonFormatter, NodeFilter
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def start_helper(mode: str) -> subprocess.Popen[str]:
+    return subprocess.Popen(
+        [sys.executable, "-m", "tests.edge.service_helper", mode],
+        cwd=REPO,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env={**os.environ, "PYTHONPATH": str(REPO)},
+    )
+
+
+def read_until(proc: subprocess.Popen[str], marker: str) -> list[str]:
+    assert proc.stdout is not None
+    lines: list[str] = []
+    while True:
+        line = proc.stdout.readline()
+        if not line:
+            raise AssertionError(f"no {marker!r} before EOF; got {lines}")
+        lines.append(line.strip())
+        if line.strip() == marker:
+            return lines
+
+
+def finish(proc: subprocess.Popen[str]) -> tuple[int, str, str]:
+    try:
+        out, err = proc.communicate(timeout=20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    return proc.returncode, out, err
+
+
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT])
+def test_first_signal_stops_gracefully(signum: signal.Signals) -> None:
+    proc = start_helper("cooperative")
+    assert read_until(proc, "running") == ["startup", "running"]
+    proc.send_signal(signum)
+    code, out, err = finish(proc)
+    assert code == EXIT_OK, err
+    assert out.split() == ["stopping", "shutdown"]
+    assert f"{signum.name} received: stopping" in err
+    assert "[helper-node]" in err and "crosspath.helper" in err  # logging format
+
+
+def test_second_signal_forces_exit() -> None:
+    proc = start_helper("stubborn")
+    read_until(proc, "running")
+    proc.send_signal(signal.SIGINT)
+    read_until(proc, "stop ignored")
+    proc.send_signal(signal.SIGINT)
+    code, out, err = finish(proc)
+    assert code == EXIT_FAILED
+    assert out.split() == ["shutdown"]  # best-effort shutdown still ran
+    assert "forcing exit" in err
+
+
+class Recorder:
+    """An in-process service recording its steps."""
+
+    def __init__(self, fail_in: str = "", shutdown_s: float = 0.0) -> None:
+        self.steps: list[str] = []
+        self.fail_in = fail_in
+        self.shutdown_s = shutdown_s
+
+    async def startup(self) -> None:
+        self.steps.append("startup")
+        if self.fail_in == "startup":
+            raise RuntimeError("no network")
+
+    async def run(self, stop: asyncio.Event) -> None:
+        self.steps.append("run")
+        if self.fail_in == "run":
+            raise RuntimeError("bug")
+        await stop.wait()
+
+    async def shutdown(self) -> None:
+        self.steps.append("shutdown")
+        await asyncio.sleep(self.shutdown_s)
+
+
+async def test_serve_with_an_external_stop_event() -> None:
+    service = Recorder()
+    stop = asyncio.Event()
+    task = asyncio.ensure_future(serve(service, install_signals=False, stop=stop))
+    await asyncio.sleep(0.01)
+    assert service.steps == ["startup", "run"]
+    stop.set()
+    assert await task == EXIT_OK
+    assert service.steps == ["startup", "run", "shutdown"]
+
+
+@pytest.mark.parametrize("where", ["startup", "run"])
+async def test_a_failing_step_still_shuts_down(where: str) -> None:
+    service = Recorder(fail_in=where)
+    assert await serve(service, install_signals=False) == EXIT_FAILED
+    assert service.steps[-1] == "shutdown"
+    assert ("run" in service.steps) is (where == "run")
+
+
+async def test_a_slow_shutdown_times_out() -> None:
+    service = Recorder(shutdown_s=10.0)
+    stop = asyncio.Event()
+    stop.set()
+    code = await serve(service, install_signals=False, stop=stop, shutdown_timeout=0.05)
+    assert code == EXIT_FAILED
+
+
+def test_json_log_lines_carry_the_node() -> None:
+    record = logging.LogRecord(
+        "crosspath.rsu", logging.INFO, __file__, 1, "mode %s", ("C_SLOW",), None
+    )
+    NodeFilter("rsu-1").filter(record)
+    entry = json.loads(JsonFormatter().format(record))
+    assert entry["node"] == "rsu-1" and entry["logger"] == "crosspath.rsu"
+    assert entry["level"] == "INFO" and entry["message"] == "mode C_SLOW"

@@ -1,0 +1,445 @@
+"""The transports: real Zenoh peers on loopback, the in-memory bus, key expressions, QoS."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import socket
+import subprocess
+import sys
+import threading
+from collections.abc import AsyncIterator, Callable
+from pathlib import Path
+
+import pytest
+import zenoh
+
+from protocol import keys
+from services.edge.settings import ZenohSettings
+from services.edge.transport import (
+    RELIABLE_QOS,
+    V2X_QOS,
+    MemoryBus,
+    MemoryTransport,
+    Qos,
+    TransportError,
+    ZenohTransport,
+    keyexpr_matches,
+    qos_for,
+    qos_for_key,
+    validate_key,
+    zenoh_config,
+)
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def free_port(kind: int) -> int:
+    """A port the kernel reports free on 127.0.0.1 for ``kind`` (SOCK_STREAM / SOCK_DGRAM)."""
+    with socket.socket(socket.AF_INET, kind) as sock:
+        sock.bind(("127.0.0.1", 0))
+        port: int = sock.getsockname()[1]
+        return port
+
+
+def endpoints() -> list[str]:
+    return [
+        f"udp/127.0.0.1:{free_port(socket.SOCK_DGRAM)}",
+        f"tcp/127.0.0.1:{free_port(socket.SOCK_STREAM)}",
+    ]
+
+
+async def wait_for(predicate: Callable[[], bool], timeout: float = 5.0) -> None:
+    deadline = asyncio.get_running_loop().time() + timeout
+    while not predicate():
+        if asyncio.get_running_loop().time() > deadline:
+            raise AssertionError("condition not reached in time")
+        await asyncio.sleep(0.02)
+
+
+def snmp(proto: str, counter: str) -> int:
+    """A kernel counter of this network namespace (``/proc/net/snmp``)."""
+    rows = [line.split() for line in Path("/proc/net/snmp").read_text().splitlines()]
+    head, values = (row for row in rows if row[0] == f"{proto}:")
+    return int(values[head.index(counter)])
+
+
+@pytest.fixture
+async def peers() -> AsyncIterator[tuple[ZenohTransport, ZenohTransport]]:
+    """Two Zenoh peers on loopback, scouting off, B connected to both of A's endpoints."""
+    a_eps = endpoints()
+    a = ZenohTransport(ZenohSettings(listen=a_eps))
+    b = ZenohTransport(ZenohSettings(listen=endpoints(), connect=a_eps))
+    a.open()
+    await b.open_async()
+    await wait_for(lambda: {src.split("/")[0] for src, _ in a.links()} == {"udp", "tcp"})
+    yield a, b
+    b.close()
+    a.close()
+
+
+# --------------------------------------------------------------------------- Zenoh
+
+
+async def test_peers_exchange_v2x_and_reliable_on_the_loop_thread(
+    peers: tuple[ZenohTransport, ZenohTransport],
+) -> None:
+    a, b = peers
+    loop_thread = threading.get_ident()
+    got: list[tuple[str, bytes, int]] = []
+
+    def handler(key: str, data: bytes) -> None:
+        got.append((key, data, threading.get_ident()))
+
+    a.subscribe(keys.all_future_paths(), handler)
+    a.subscribe(keys.all_sim(), handler)
+    fp_key = keys.future_path("car-b")
+    sim_key = keys.sim("truth", "car-b")
+    fp_payload = bytes(range(256)) * 5  # 1280 bytes, one datagram
+    sim_payload = b"\x00ground truth\xff"
+
+    # Declarations propagate asynchronously: repeat until both arrive.
+    async def exchange() -> None:
+        while not ({k for k, _, _ in got} >= {fp_key, sim_key}):
+            b.publish(fp_key, fp_payload, qos_for(keys.Stream.FP))
+            b.publish(sim_key, sim_payload, qos_for_key(sim_key))
+            await asyncio.sleep(0.05)
+
+    await asyncio.wait_for(exchange(), 5.0)
+    by_key = {k: (data, ident) for k, data, ident in got}
+    assert by_key[fp_key][0] == fp_payload
+    assert by_key[sim_key][0] == sim_payload
+    assert {ident for _, _, ident in got} == {loop_thread}
+    assert a.dropped == 0
+
+
+async def test_best_effort_takes_udp_and_reliable_takes_tcp(
+    peers: tuple[ZenohTransport, ZenohTransport],
+) -> None:
+    """Lower bounds on the kernel's counters: other traffic can only add to them."""
+    a, b = peers
+    counts = {"be": 0, "rel": 0}
+
+    def count(key: str, data: bytes) -> None:
+        counts[key.rsplit("/", 1)[1]] += 1
+
+    a.subscribe("crosspath/v2x/test/*", count)
+    a.subscribe("crosspath/sim/test/*", count)
+    warm = 0
+    while counts["be"] == 0 or counts["rel"] == 0:  # wait for the declarations to arrive
+        b.publish("crosspath/v2x/test/be", b"w", V2X_QOS)
+        b.publish("crosspath/sim/test/rel", b"w", RELIABLE_QOS)
+        await asyncio.sleep(0.05)
+        warm += 1
+        assert warm < 100
+    await asyncio.sleep(0.1)
+    n = 200
+    reliable_express = Qos(reliable=True, express=True, drop=False)  # one segment each
+    for key, qos, proto, counter in (
+        ("crosspath/v2x/test/be", V2X_QOS, "Udp", "OutDatagrams"),
+        ("crosspath/sim/test/rel", reliable_express, "Tcp", "OutSegs"),
+    ):
+        name = key.rsplit("/", 1)[1]
+        counts[name] = 0
+        before = snmp(proto, counter)
+        for _ in range(n):
+            b.publish(key, b"x" * 600, qos)
+            await asyncio.sleep(0.001)
+        arrived = await _until_count(counts, name, n)
+        assert snmp(proto, counter) - before >= arrived, (key, proto)
+
+
+async def _until_count(counts: dict[str, int], name: str, n: int) -> int:
+    """Wait until nearly all ``n`` arrived (loopback may drop a few best-effort ones)."""
+    await wait_for(lambda: counts[name] >= n * 0.95)
+    await asyncio.sleep(0.1)
+    return counts[name]
+
+
+async def test_liveliness_token_appears_and_goes(
+    peers: tuple[ZenohTransport, ZenohTransport],
+) -> None:
+    a, b = peers
+    changes: list[tuple[str, bool]] = []
+    early = b.declare_liveliness("crosspath/alive/early")
+    a.watch_liveliness("crosspath/alive/*", lambda key, alive: changes.append((key, alive)))
+    await wait_for(lambda: ("crosspath/alive/early", True) in changes)  # history
+    late = b.declare_liveliness("crosspath/alive/late")
+    await wait_for(lambda: ("crosspath/alive/late", True) in changes)
+    late.close()
+    await wait_for(lambda: ("crosspath/alive/late", False) in changes)
+    b.close()  # the session's tokens vanish with it
+    await wait_for(lambda: ("crosspath/alive/early", False) in changes)
+    early.close()  # no-op once the transport is closed
+
+
+async def test_close_undeclares_everything_and_is_idempotent() -> None:
+    t = ZenohTransport(ZenohSettings(listen=[f"tcp/127.0.0.1:{free_port(socket.SOCK_STREAM)}"]))
+    t.open()
+    sub = t.subscribe("crosspath/v2x/**", lambda key, data: None)
+    t.declare_liveliness("crosspath/alive/x")
+    t.watch_liveliness("crosspath/alive/*", lambda key, alive: None)
+    t.publish("crosspath/v2x/fp/x", b"1", V2X_QOS)
+    t.publish("crosspath/stats/x", b"2", RELIABLE_QOS)
+    assert len(t._handles) == 3 and len(t._publishers) == 2
+    t.close()
+    assert t._handles == [] and t._publishers == {} and not t.is_open
+    t.close()
+    sub.close()
+    with pytest.raises(TransportError, match="closed"):
+        t.publish("crosspath/v2x/fp/x", b"1", V2X_QOS)
+    with pytest.raises(TransportError, match="closed"):
+        t.open()
+
+
+async def test_subscription_close_stops_delivery(
+    peers: tuple[ZenohTransport, ZenohTransport],
+) -> None:
+    a, b = peers
+    got: list[str] = []
+    sub = a.subscribe("crosspath/v2x/fp/*", lambda key, data: got.append(key))
+    await asyncio.wait_for(_publish_until(b, "crosspath/v2x/fp/q", got), 5.0)
+    sub.close()
+    sub.close()
+    assert sub not in a._handles
+    got.clear()
+    for _ in range(5):
+        b.publish("crosspath/v2x/fp/q", b"late", V2X_QOS)
+    await asyncio.sleep(0.2)
+    assert got == []
+
+
+async def _publish_until(t: ZenohTransport, key: str, got: list[str]) -> None:
+    while not got:
+        t.publish(key, b"p", V2X_QOS)
+        await asyncio.sleep(0.05)
+
+
+async def test_a_failing_handler_is_logged_not_fatal(
+    peers: tuple[ZenohTransport, ZenohTransport], caplog: pytest.LogCaptureFixture
+) -> None:
+    a, b = peers
+    ok: list[str] = []
+
+    def bad(key: str, data: bytes) -> None:
+        raise RuntimeError("boom")
+
+    a.subscribe("crosspath/v2x/fp/*", bad)
+    a.subscribe("crosspath/v2x/fp/*", lambda key, data: ok.append(key))
+    await asyncio.wait_for(_publish_until(b, "crosspath/v2x/fp/z", ok), 5.0)
+    assert "handler for crosspath/v2x/fp/* failed" in caplog.text
+
+
+def test_open_needs_a_loop_and_bad_keys_are_refused() -> None:
+    t = ZenohTransport(ZenohSettings())
+    with pytest.raises(TransportError, match="event loop"):
+        t.open()
+    with pytest.raises(TransportError, match="not open"):
+        t.publish("crosspath/v2x/fp/a", b"", V2X_QOS)
+    loop = asyncio.new_event_loop()
+    try:
+        t = ZenohTransport(ZenohSettings(listen=["tcp/127.0.0.1:0"]), loop=loop)
+        t.open()
+        with pytest.raises(ValueError, match="wildcards"):
+            t.publish("crosspath/v2x/fp/*", b"", V2X_QOS)
+        with pytest.raises(ValueError, match="empty chunk"):
+            t.subscribe("crosspath//fp", lambda key, data: None)
+        t.close()
+    finally:
+        loop.close()
+
+
+def test_zenoh_config_from_settings_and_file(tmp_path: Path) -> None:
+    config = zenoh_config(
+        ZenohSettings(
+            mode="client",
+            connect=["tcp/127.0.0.1:7447"],
+            options={"transport/unicast/lowlatency": False},
+        )
+    )
+    assert '"client"' in config.get_json("mode")
+    assert "tcp/127.0.0.1:7447" in config.get_json("connect/endpoints")
+    assert config.get_json("scouting/multicast/enabled") == "false"
+    assert config.get_json("transport/unicast/max_links") == "2"
+
+    file = tmp_path / "z.json5"
+    file.write_text('{ mode: "peer", listen: { endpoints: ["udp/127.0.0.1:7000"] } }')
+    only_file = zenoh_config(ZenohSettings(config_file=file))
+    assert "udp/127.0.0.1:7000" in only_file.get_json("listen/endpoints")
+    overridden = zenoh_config(ZenohSettings(config_file=file, listen=["tcp/127.0.0.1:7001"]))
+    assert "tcp/127.0.0.1:7001" in overridden.get_json("listen/endpoints")
+    assert "udp/127.0.0.1:7000" not in overridden.get_json("listen/endpoints")
+
+    file.write_text("{ mode: ")
+    with pytest.raises(TransportError, match="invalid Zenoh configuration"):
+        zenoh_config(ZenohSettings(config_file=file))
+
+
+@pytest.mark.parametrize("name", sorted(p.name for p in (REPO / "deploy/zenoh").glob("*.json5")))
+def test_deploy_examples_are_valid_zenoh_configs(name: str) -> None:
+    config = zenoh.Config.from_file(REPO / "deploy/zenoh" / name)
+    assert config.get_json("mode").strip('"') in ("peer", "client", "router")
+
+
+def test_deploy_has_the_four_examples() -> None:
+    names = {p.name for p in (REPO / "deploy/zenoh").glob("*.json5")}
+    assert {"car-peer.json5", "rsu-peer.json5", "router.json5", "client-to-router.json5"} <= names
+
+
+@pytest.mark.daemons
+async def test_router_command_forwards_between_clients() -> None:
+    udp, tcp = endpoints()
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "services.daemons.router", "--listen", udp, "--listen", tcp],
+        cwd=REPO,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env={**os.environ, "PYTHONPATH": str(REPO)},
+    )
+    try:
+        assert proc.stdout is not None
+        line = await asyncio.wait_for(asyncio.to_thread(proc.stdout.readline), 20.0)
+        assert "crosspath router: ready" in line, line
+        a = ZenohTransport(ZenohSettings(mode="client", connect=[tcp]))
+        b = ZenohTransport(ZenohSettings(mode="client", connect=[tcp]))
+        a.open()
+        b.open()
+        got: list[str] = []
+        a.subscribe("crosspath/v2x/fp/*", lambda key, data: got.append(key))
+        await asyncio.wait_for(_publish_until(b, "crosspath/v2x/fp/r", got), 5.0)
+        assert got[0] == "crosspath/v2x/fp/r"
+        a.close()
+        b.close()
+        proc.terminate()
+        code = await asyncio.wait_for(asyncio.to_thread(proc.wait), 10.0)
+        assert code == 0, proc.stderr.read() if proc.stderr else ""
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+# --------------------------------------------------------------------------- memory
+
+
+@pytest.mark.parametrize(
+    ("pattern", "key", "expected"),
+    [
+        ("a/b/c", "a/b/c", True),
+        ("a/b/c", "a/b", False),
+        ("a/*/c", "a/b/c", True),
+        ("a/*/c", "a/b/x/c", False),
+        ("a/*", "a", False),
+        ("a/**", "a", True),
+        ("a/**", "a/b/c", True),
+        ("a/**/c", "a/c", True),
+        ("a/**/c", "a/b/x/c", True),
+        ("a/**/c", "a/b/x/d", False),
+        ("**", "a/b", True),
+        ("**/c", "a/b/c", True),
+        ("crosspath/v2x/rsu/*/cmd/car-a", "crosspath/v2x/rsu/r1/cmd/car-a", True),
+        ("crosspath/v2x/rsu/*/cmd/car-a", "crosspath/v2x/rsu/r1/cmd/car-b", False),
+        ("crosspath/v2x/**", "crosspath/sim/x", False),
+    ],
+)
+def test_keyexpr_matches(pattern: str, key: str, expected: bool) -> None:
+    assert keyexpr_matches(pattern, key) is expected
+
+
+@pytest.mark.parametrize("bad", ["", "a//b", "/a", "a/", "a/b*", "a/#", "a/?x", "a/**/**"])
+def test_validate_key_refuses(bad: str) -> None:
+    with pytest.raises(ValueError):
+        validate_key(bad, wildcards=True)
+
+
+async def test_memory_transport_delivers_by_wildcards_on_the_loop() -> None:
+    bus = MemoryBus()
+    car = MemoryTransport(bus)
+    rsu = MemoryTransport(bus)
+    car.open()
+    rsu.open()
+    got: list[tuple[str, str, bytes]] = []
+    rsu.subscribe("crosspath/v2x/fp/*", lambda k, d: got.append(("fp", k, d)))
+    rsu.subscribe("crosspath/v2x/**", lambda k, d: got.append(("all", k, d)))
+    car.subscribe("crosspath/v2x/rsu/*/cmd/car-a", lambda k, d: got.append(("cmd", k, d)))
+    car.publish("crosspath/v2x/fp/car-a", b"path", V2X_QOS)
+    rsu.publish("crosspath/v2x/rsu/r1/cmd/car-a", b"go", V2X_QOS)
+    rsu.publish("crosspath/v2x/rsu/r1/cmd/car-b", b"other", V2X_QOS)
+    assert got == []  # asynchronous, like Zenoh
+    await asyncio.sleep(0)
+    assert sorted(got) == sorted(
+        [
+            ("fp", "crosspath/v2x/fp/car-a", b"path"),
+            ("all", "crosspath/v2x/fp/car-a", b"path"),
+            ("all", "crosspath/v2x/rsu/r1/cmd/car-a", b"go"),
+            ("all", "crosspath/v2x/rsu/r1/cmd/car-b", b"other"),
+            ("cmd", "crosspath/v2x/rsu/r1/cmd/car-a", b"go"),
+        ]
+    )
+    assert bus.published == 3
+    car.close()
+    rsu.close()
+
+
+async def test_memory_transport_close_and_liveliness() -> None:
+    bus = MemoryBus()
+    a = MemoryTransport(bus)
+    b = MemoryTransport(bus)
+    a.open()
+    b.open()
+    changes: list[tuple[str, bool]] = []
+    b.declare_liveliness("crosspath/alive/b1")
+    a.watch_liveliness("crosspath/alive/*", lambda k, alive: changes.append((k, alive)))
+    token = b.declare_liveliness("crosspath/alive/b2")
+    await asyncio.sleep(0)
+    assert changes == [("crosspath/alive/b1", True), ("crosspath/alive/b2", True)]
+    token.close()
+    b.close()
+    await asyncio.sleep(0)
+    assert changes[2:] == [("crosspath/alive/b2", False), ("crosspath/alive/b1", False)]
+
+    got: list[bytes] = []
+    sub = a.subscribe("crosspath/v2x/**", lambda k, d: got.append(d))
+    c = MemoryTransport(bus)
+    c.open()
+    c.publish("crosspath/v2x/fp/c", b"1", V2X_QOS)
+    sub.close()  # closes before the queued delivery runs: nothing is delivered
+    await asyncio.sleep(0)
+    assert got == []
+    a.close()
+    a.close()
+    with pytest.raises(TransportError, match="closed"):
+        a.publish("crosspath/v2x/fp/a", b"", V2X_QOS)
+    c.close()
+
+
+async def test_memory_transport_delivers_from_another_thread() -> None:
+    bus = MemoryBus()
+    a = MemoryTransport(bus)
+    b = MemoryTransport(bus)
+    a.open()
+    b.open()
+    idents: list[int] = []
+    a.subscribe("crosspath/v2x/**", lambda k, d: idents.append(threading.get_ident()))
+    worker = threading.Thread(target=b.publish, args=("crosspath/v2x/fp/x", b"1", V2X_QOS))
+    worker.start()
+    worker.join()
+    await wait_for(lambda: bool(idents))
+    assert idents == [threading.get_ident()]
+    a.close()
+    b.close()
+
+
+# --------------------------------------------------------------------------- QoS
+
+
+def test_qos_per_stream() -> None:
+    assert qos_for(keys.Stream.FP) == V2X_QOS
+    assert qos_for("beacon").reliable is False
+    assert qos_for("stats") == RELIABLE_QOS
+    assert qos_for_key("lab1/crosspath/sim/truth", prefix="lab1/crosspath").reliable
+    with pytest.raises(ValueError, match="unknown stream"):
+        qos_for("radio")
+    with pytest.raises(keys.BadKey):
+        qos_for_key("other/v2x/fp/a")
