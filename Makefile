@@ -25,11 +25,15 @@ lint: install
 	$(BIN)/mypy
 	$(BIN)/lint-imports
 
+# `make test` is what CI runs (.ci/run sets CI): everything, the wheel installed in a fresh
+# venv included (tests/test_packaging.py). Tests marked `slow` run on CI, or with SLOW=1.
+SLOW_TESTS = $(if $(CI)$(SLOW),,-m "not slow")
+
 test: install sysdeps lint
-	$(BIN)/pytest -q
+	$(BIN)/pytest -q $(SLOW_TESTS)
 
 test-fast: install
-	$(BIN)/pytest -q -m "not daemons and not lab"
+	$(BIN)/pytest -q -m "not daemons and not lab and not packaging and not slow"
 
 bench: install
 	@mkdir -p $(OUT)/bench
@@ -41,4 +45,4 @@ demo: install
 	$(BIN)/crosspath demo
 
 clean:
-	rm -rf $(VENV) .mypy_cache .ruff_cache .pytest_cache .hypothesis build *.egg-info
+	rm -rf $(VENV) .mypy_cache .ruff_cache .pytest_cache .hypothesis build dist *.egg-info

@@ -75,6 +75,12 @@ MAX_RADIUS_M: Final = 10_000.0
 MAX_AUTH_LEN: Final = 256
 """Longest ``Header.auth`` (scheme byte + up to 255 bytes of data)."""
 
+MAX_STEP_M: Final = 327.67
+"""Largest change of x or y between consecutive path points [m] (int16 centimetres)."""
+
+MAX_STEP_S: Final = 65.535
+"""Largest time between consecutive path points [s] (uint16 milliseconds)."""
+
 _KNOWN_FLAGS: Final = int(Flags.AUTH)
 _I32_MIN: Final = -(2**31)
 _I32_MAX: Final = 2**31 - 1

@@ -39,7 +39,6 @@ import math
 import statistics
 import time
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
 
 import msgpack
@@ -61,6 +60,8 @@ from protocol import (
     encode,
     max_points,
 )
+from services.edge.args import output_file, positive_int
+from services.edge.progress import Ticker
 
 FORMATS: dict[str, str] = {
     "crosspath": "crosspath binary codec (protocol/SPEC.md)",
@@ -343,17 +344,25 @@ def measure(points: int = 120, repeat: int = 25, number: int = 200) -> dict[str,
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--json", metavar="OUT", type=Path, help="write the results as JSON")
-    parser.add_argument("--points", type=int, default=120, help="points per path (default 120)")
-    parser.add_argument("--repeat", type=int, default=25, help="timed rounds (median)")
-    parser.add_argument("--number", type=int, default=200, help="calls per round")
+    """Options of ``crosspath bench codec``; bad values are refused while parsing."""
+    most = max_points(Kind.FUTURE_PATH)
+
+    def points(text: str) -> int:
+        value = positive_int(text)
+        if value > most:
+            raise argparse.ArgumentTypeError(f"must be <= {most} (one datagram), got {value}")
+        return value
+
+    parser.add_argument("--json", metavar="OUT", type=output_file, help="write the results as JSON")
+    parser.add_argument("--points", type=points, default=120, help="points per path")
+    parser.add_argument("--repeat", type=positive_int, default=25, help="timed rounds (median)")
+    parser.add_argument("--number", type=positive_int, default=200, help="calls per round")
 
 
 def run(args: argparse.Namespace) -> int:
-    if not 1 <= args.points <= max_points(Kind.FUTURE_PATH):
-        print(f"--points must lie in 1..{max_points(Kind.FUTURE_PATH)}")
-        return 2
-    result = measure(args.points, repeat=args.repeat, number=args.number)
+    """Measure and print; a status line on stderr while it runs (on a terminal only)."""
+    with Ticker("crosspath bench codec", lambda: f"{len(FORMATS)} formats"):
+        result = measure(args.points, repeat=args.repeat, number=args.number)
     print(f"future path, {result['points']} points; median of {args.repeat} x {args.number} calls")
     print(f"{'format':<12} {'bytes':>8} {'enc+dec µs':>11} {'vs crosspath':>13}")
     ours = result["encode_decode_us"]["crosspath"]

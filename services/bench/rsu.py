@@ -24,12 +24,13 @@ import json
 import math
 import time
 from collections.abc import Sequence
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from protocol.messages import FuturePath, Header, Mode
+from services.edge.args import non_negative_int, output_file, positive_int
+from services.edge.progress import Ticker
 from services.rsu.config import RsuConfig
 from services.rsu.core import RsuCore
 
@@ -177,24 +178,35 @@ def measure(
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--json", metavar="OUT", type=Path, help="write the results as JSON")
+    """Options of ``crosspath bench rsu``; bad values are refused while parsing."""
+    parser.add_argument("--json", metavar="OUT", type=output_file, help="write the results as JSON")
     parser.add_argument(
         "--cars",
         metavar="N",
-        type=int,
+        type=non_negative_int,
         nargs="+",
         default=[10, 100, 1000],
-        help="table sizes to measure (default: 10 100 1000)",
+        help="table sizes to measure",
     )
-    parser.add_argument("--updates", type=int, default=500, help="measured updates per size")
     parser.add_argument(
-        "--naive-updates", type=int, default=50, help="naive checks per size (they are slow)"
+        "--updates", type=positive_int, default=500, help="measured updates per size"
     )
-    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument(
+        "--naive-updates",
+        type=positive_int,
+        default=50,
+        help="naive checks per size (they are slow)",
+    )
+    parser.add_argument(
+        "--seed", type=non_negative_int, default=1, help="seed of the first table's paths"
+    )
 
 
 def run(args: argparse.Namespace) -> int:
-    doc = measure(args.cars, args.updates, args.naive_updates, args.seed)
+    """Measure and print; a status line on stderr while it runs (on a terminal only)."""
+    sizes = " ".join(str(n) for n in args.cars)
+    with Ticker("crosspath bench rsu", lambda: f"tables of {sizes} cars"):
+        doc = measure(args.cars, args.updates, args.naive_updates, args.seed)
     print(
         f"{'cars':>6} {'p50 µs':>9} {'p99 µs':>9} {'query µs':>9} {'naive µs':>10} {'speedup':>8}"
     )

@@ -14,13 +14,15 @@ import time
 from pathlib import Path
 from typing import Any
 
+from services.edge.args import output_file, positive_int
+from services.edge.progress import Ticker
+from services.model.catalog import default_scenario
 from services.model.scenario import load_scenario
 from services.model.types import Policy, RunMode
 from services.sim.harness import SimOptions, simulate
 
-DEFAULT_SCENARIO = (
-    Path(__file__).resolve().parents[3] / "scenarios" / "paper-blind-intersection.toml"
-)
+DEFAULT_SCENARIO = default_scenario()
+"""The packaged paper scenario (``services.model.catalog``), wherever crosspath is installed."""
 
 CASES: tuple[tuple[str, RunMode, Policy], ...] = (
     ("standalone", RunMode.STANDALONE, Policy.PAPER),
@@ -41,8 +43,8 @@ def measure(scenario_path: Path = DEFAULT_SCENARIO, seeds: int = 3) -> dict[str,
             r = simulate(scenario, SimOptions(mode=mode, policy=policy, seed=seed))
             wall = time.perf_counter() - t0
             walls.append(wall)
-            sims.append(float(r["sim_s"]))
-            ratios.append(float(r["sim_s"]) / wall)
+            sims.append(r.sim_s)
+            ratios.append(r.sim_s / wall)
         results.append(
             {
                 "case": name,
@@ -55,13 +57,23 @@ def measure(scenario_path: Path = DEFAULT_SCENARIO, seeds: int = 3) -> dict[str,
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--scenario", type=Path, default=DEFAULT_SCENARIO)
-    parser.add_argument("--seeds", type=int, default=3)
-    parser.add_argument("--json", type=Path, default=None)
+    """Options of ``crosspath bench sim``; bad values are refused while parsing."""
+    parser.add_argument(
+        "--scenario", type=Path, default=DEFAULT_SCENARIO, help="TOML file or packaged name"
+    )
+    parser.add_argument(
+        "--seeds", type=positive_int, default=3, help="runs per case (seeds 0..N-1; median)"
+    )
+    parser.add_argument(
+        "--json", type=output_file, default=None, metavar="OUT", help="write the results as JSON"
+    )
 
 
 def run(args: argparse.Namespace) -> int:
-    report = measure(args.scenario, args.seeds)
+    """Measure and print; a status line on stderr while it runs (on a terminal only)."""
+    label = f"{len(CASES)} cases x {args.seeds} seeds"
+    with Ticker("crosspath bench sim", lambda: label):
+        report = measure(args.scenario, args.seeds)
     print(f"{'case':<12}{'sim [s]':>9}{'wall [s]':>10}{'x real time':>13}")
     for r in report["results"]:
         print(

@@ -12,8 +12,10 @@
     one whole run in a fresh lab (``services.supervise.lab.runner.run_lab``), torn
     down afterwards whatever happens; prints the result, the ``network`` table,
     the per-node air counters beside the daemons' own and, with crashes, the
-    fallback and rebuild times. ``R`` is in percent (``crosspath sim --loss``
-    takes a probability), ``T`` in run seconds.
+    fallback and rebuild times. ``R`` is a fraction 0..1 (``0.3``, or ``30%``),
+    as ``crosspath sim --loss`` and every probability in crosspath; ``T`` in run
+    seconds. On a terminal a status line on stderr shows the phase and the
+    elapsed time.
 ``crosspath lab down [--name N | --all]``
     removes every namespace, link, rule and process of lab ``N`` (or of every
     lab), also after a crash or Ctrl-C.
@@ -24,8 +26,9 @@ before a new one is built, so ``up`` works again after a failed or killed run.
 Every daemon's command line carries its lab's name (``pgrep -f <name>``).
 
 Exit codes: 0 done; 1 the run failed (its result says why in ``error``); 2 bad
-arguments or the lab cannot be built here (not root, ``ip``/``tc``/``nft``
-missing); 128 + signal number when interrupted (the lab is gone by then).
+arguments (one line, before anything is built) or the lab cannot be built here
+(not root, ``ip``/``tc``/``nft`` missing); 128 + signal number when interrupted
+(the lab is gone by then).
 """
 
 from __future__ import annotations
@@ -34,10 +37,22 @@ import argparse
 import sys
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Final
+from typing import Any, Final, get_args
 
+from services.edge.args import (
+    float_at_least,
+    fraction,
+    non_negative_int,
+    output_dir,
+    output_file,
+    positive_float,
+    run_speed,
+)
+from services.edge.progress import Ticker
+from services.edge.settings import LogLevel
 from services.model.scenario import ScenarioError
 from services.model.types import Policy, RunMode
+from services.supervise.lab.faults import Loss
 from services.supervise.lab.netns import (
     Lab,
     LabError,
@@ -93,13 +108,6 @@ def _prerequisites(command: str) -> int | None:
     return None
 
 
-def _percent(text: str) -> float:
-    value = float(text.rstrip("%").strip())
-    if not 0.0 <= value <= 100.0:
-        raise argparse.ArgumentTypeError(f"loss must be within 0..100 (percent), got {text}")
-    return value
-
-
 def _timed(text: str) -> TimedAction:
     try:
         return parse_timed(text)
@@ -110,32 +118,57 @@ def _timed(text: str) -> TimedAction:
 def _add_faults(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--loss",
-        type=_percent,
+        type=fraction,
         default=0.0,
         metavar="R",
-        help="air packet loss in percent, per receiver (ingress on every car and RSU)",
+        help="air packet loss per receiver, a fraction 0..1 or 30%% (ingress on every car and RSU)",
     )
     parser.add_argument(
         "--burst",
-        type=float,
+        type=float_at_least(1.0),
         default=None,
         metavar="B",
         help="mean loss burst in packets (Gilbert model); default: independent losses",
     )
     parser.add_argument(
         "--rate",
-        type=float,
+        type=positive_float,
         default=None,
         metavar="MBIT",
         help="rate limit of every car's and RSU's air transmissions [Mbit/s] (DSRC: 6)",
     )
 
 
+_LOG_LEVELS: Final = list(get_args(LogLevel))
+
+
 def _add_run_choice(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--mode", choices=[m.value for m in RunMode], default=RunMode.RSU.value)
-    parser.add_argument("--policy", choices=[p.value for p in Policy], default=Policy.PAPER.value)
-    parser.add_argument("--seed", type=int, default=0, help="seed of the start times")
-    parser.add_argument("--speed", type=float, default=1.0, help="run seconds per wall second")
+    parser.add_argument(
+        "--mode",
+        choices=[m.value for m in RunMode],
+        default=RunMode.RSU.value,
+        help="standalone (no V2X), fp-only (future paths), rsu (future paths and the RSU)",
+    )
+    parser.add_argument(
+        "--policy",
+        choices=[p.value for p in Policy],
+        default=Policy.PAPER.value,
+        help="the RSU's velocity manager (rsu mode)",
+    )
+    parser.add_argument("--seed", type=non_negative_int, default=0, help="seed of the start times")
+    parser.add_argument(
+        "--speed", type=run_speed, default=1.0, help="run seconds per wall second, up to 1000"
+    )
+
+
+def _add_log_level(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--log-level",
+        type=str.upper,
+        choices=_LOG_LEVELS,
+        default="INFO",
+        help="log level of the daemons",
+    )
 
 
 # --------------------------------------------------------------------------- up
@@ -143,14 +176,14 @@ def _add_run_choice(parser: argparse.ArgumentParser) -> None:
 
 def configure_up(parser: argparse.ArgumentParser) -> None:
     """Options of ``crosspath lab up``."""
-    parser.add_argument("scenario", type=Path, help="scenario file (TOML)")
+    parser.add_argument("scenario", type=Path, help="TOML file or packaged name")
     parser.add_argument("--name", default=DEFAULT_NAME, help="lab name, 1-12 of a-z 0-9")
     _add_run_choice(parser)
     _add_faults(parser)
     parser.add_argument(
-        "--log-dir", type=Path, default=None, help="daemon logs (default results/lab/<name>)"
+        "--log-dir", type=output_dir, default=None, help="daemon logs (default results/lab/<name>)"
     )
-    parser.add_argument("--log-level", default="INFO", help="log level of the daemons")
+    _add_log_level(parser)
 
 
 def run_up(args: argparse.Namespace) -> int:
@@ -160,6 +193,8 @@ def run_up(args: argparse.Namespace) -> int:
         return code
     log_dir: Path = args.log_dir or DEFAULT_RUN_ROOT / args.name
     try:
+        if args.loss > 0.0:
+            Loss(args.loss, args.burst)  # an impossible loss model is refused before building
         session = LabSession(args.scenario, RunMode(args.mode), args.name, log_dir)
     except (ScenarioError, ValueError) as exc:
         return _fail("up", str(exc))
@@ -213,7 +248,7 @@ def run_up(args: argparse.Namespace) -> int:
 
 def configure_run(parser: argparse.ArgumentParser) -> None:
     """Options of ``crosspath lab run``."""
-    parser.add_argument("scenario", type=Path, help="scenario file (TOML)")
+    parser.add_argument("scenario", type=Path, help="TOML file or packaged name")
     _add_run_choice(parser)
     _add_faults(parser)
     parser.add_argument(
@@ -232,17 +267,27 @@ def configure_run(parser: argparse.ArgumentParser) -> None:
         metavar="NODE@T",
         help="start the crashed RSU NODE again at run time T [s] (repeatable)",
     )
-    parser.add_argument("--json", type=Path, default=None, help="write the run result here")
+    parser.add_argument(
+        "--json", type=output_file, default=None, metavar="OUT", help="write the run result here"
+    )
     parser.add_argument("--name", default=None, help="lab name (default: random r<hex>)")
     parser.add_argument(
-        "--run-dir", type=Path, default=None, help="logs (default results/lab/<time>-<name>)"
+        "--run-dir", type=output_dir, default=None, help="logs (default results/lab/<time>-<name>)"
     )
-    parser.add_argument("--max-sim-s", type=float, default=None, help="run time limit [s]")
     parser.add_argument(
-        "--timeout", type=float, default=None, help="wall s (default: max_sim_s / speed + 60)"
+        "--max-sim-s",
+        type=positive_float,
+        default=None,
+        help="run time limit [s] (default: the scenario's)",
+    )
+    parser.add_argument(
+        "--timeout",
+        type=positive_float,
+        default=None,
+        help="wall s (default: max_sim_s / speed + 60)",
     )
     parser.add_argument("--trace", action="store_true", help="keep the per-step trace in --json")
-    parser.add_argument("--log-level", default="INFO", help="log level of the daemons")
+    _add_log_level(parser)
 
 
 def run_run(args: argparse.Namespace) -> int:
@@ -253,38 +298,46 @@ def run_run(args: argparse.Namespace) -> int:
     code = _prerequisites("run")
     if code is not None:
         return code
+    phase = ["starting"]
+    ticker = Ticker("crosspath lab run", lambda: phase[0])
+
+    def say(message: str) -> None:
+        phase[0] = message
+        ticker.say(message)
+
     try:
-        result = run_lab(
-            args.scenario,
-            args.mode,
-            args.policy,
-            args.seed,
-            args.loss,
-            burst=args.burst,
-            rate_mbit=args.rate,
-            speed=args.speed,
-            crash_at=args.crash,
-            restart_at=args.restart,
-            name=args.name,
-            run_dir=args.run_dir,
-            json_out=args.json,
-            max_sim_s=args.max_sim_s,
-            timeout_s=args.timeout,
-            trace=args.trace,
-            log_level=args.log_level,
-            say=lambda msg: print(msg, flush=True),
-        )
+        with ticker:
+            result = run_lab(
+                args.scenario,
+                args.mode,
+                args.policy,
+                args.seed,
+                args.loss,
+                burst=args.burst,
+                rate_mbit=args.rate,
+                speed=args.speed,
+                crash_at=args.crash,
+                restart_at=args.restart,
+                name=args.name,
+                run_dir=args.run_dir,
+                json_out=args.json,
+                max_sim_s=args.max_sim_s,
+                timeout_s=args.timeout,
+                trace=args.trace,
+                log_level=args.log_level,
+                say=say,
+            )
     except LabInterrupted as exc:
         print(f"crosspath lab run: interrupted by {exc}; the lab is removed", file=sys.stderr)
         return 128 + exc.signum
     except (ScenarioError, ValueError, LabError) as exc:
         return _fail("run", str(exc))
-    if "vehicles" in result:
+    if result.vehicles:
         print(format_summary(result))
-        print(format_network(result.get("network", {})))
-    print(format_lab(result.get("lab", {})))
-    if result.get("error"):
-        print(f"crosspath lab run: run failed: {result['error']}", file=sys.stderr)
+        print(format_network(result.network))
+    print(format_lab(result.lab or {}))
+    if result.error is not None:
+        print(f"crosspath lab run: run failed: {result.error}", file=sys.stderr)
         return 1
     return 0
 
@@ -298,7 +351,7 @@ def format_lab(lab: Mapping[str, Any]) -> str:
     lines: list[str] = []
     faults = lab.get("faults") or {}
     lines.append(
-        f"lab {lab.get('name', '?')}: loss {faults.get('loss_percent', 0):g} % "
+        f"lab {lab.get('name', '?')}: loss {faults.get('loss', 0):g} "
         f"(burst {faults.get('burst') or '-'}), rate {faults.get('rate_mbit') or '-'} Mbit/s, "
         f"from run time {_num(faults.get('applied_at_s'), '.2f')} s"
     )

@@ -3,14 +3,24 @@
 Each subcommand lives in its own module exposing ``configure(parser)`` and
 ``run(args) -> int``; this file only wires them together, so importing the CLI
 stays cheap and one broken command cannot hide the others.
+
+Bad input is refused while parsing, before any work starts: every option has
+an argparse ``type=`` from :mod:`services.edge.args`, and :class:`CliParser`
+prints argparse's complaint as exactly one line, ``crosspath <cmd>: <option>:
+<reason>``, with exit code 2 (no usage block: ``--help`` has it). Every
+command's ``--help`` shows each option's default.
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import re
 import sys
 from collections.abc import Sequence
+from typing import NoReturn
+
+from services.edge.provenance import package_version
 
 # (command words) -> (module, help)
 COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
@@ -35,13 +45,68 @@ COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
 }
 
 
+_ARGUMENT = re.compile(r"^argument (\S+): ")
+_REQUIRED = re.compile(r"^the following arguments are required: (.+)$")
+_UNRECOGNIZED = re.compile(r"^unrecognized arguments: (.+)$")
+
+
+def one_line(message: str) -> str:
+    """argparse's complaint as ``<option>: <reason>`` on one line."""
+    text = " ".join(message.split())
+    if m := _REQUIRED.match(text):
+        return f"{m.group(1)}: required"
+    if m := _UNRECOGNIZED.match(text):
+        return f"{m.group(1)}: unrecognized argument{'s' if ' ' in m.group(1) else ''}"
+    return _ARGUMENT.sub(r"\1: ", text)
+
+
+class CliParser(argparse.ArgumentParser):
+    """An argument parser whose errors are one line on stderr and exit code 2."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: {one_line(message)}\n")
+
+
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Shows every option's default; not when there is nothing to show (``None``,
+    ``False``, an empty list) or the help already says it."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        default = action.default
+        if (
+            default is None
+            or default is False
+            or default is argparse.SUPPRESS
+            or (isinstance(default, list | tuple) and not default)
+            or "default" in text.lower()
+            or not (action.option_strings or action.nargs in ("?", "*"))
+        ):
+            return text
+        if isinstance(default, list | tuple):
+            shown = " ".join(str(v) for v in default)
+        else:
+            shown = str(default)
+        return f"{text} (default: {shown.replace('%', '%%')})".lstrip()
+
+
+def _add_parser(
+    group: argparse._SubParsersAction[CliParser], name: str, help_text: str
+) -> CliParser:
+    return group.add_parser(
+        name, help=help_text, description=help_text, formatter_class=HelpFormatter
+    )
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = CliParser(
         prog="crosspath",
         description="Roadside-assisted cooperative planning with future path sharing.",
+        formatter_class=HelpFormatter,
     )
+    parser.add_argument("--version", action="version", version=f"%(prog)s {package_version()}")
     top = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    groups: dict[str, argparse._SubParsersAction[argparse.ArgumentParser]] = {}
+    groups: dict[str, argparse._SubParsersAction[CliParser]] = {}
     for words, (module_name, help_text) in COMMANDS.items():
         try:
             module = importlib.import_module(module_name)
@@ -50,14 +115,14 @@ def build_parser() -> argparse.ArgumentParser:
                 continue  # command not built yet
             raise
         if len(words) == 1:
-            sub = top.add_parser(words[0], help=help_text, description=help_text)
+            sub = _add_parser(top, words[0], help_text)
         else:
             if words[0] not in groups:
-                group_parser = top.add_parser(words[0], help=f"{words[0]} commands")
+                group_parser = _add_parser(top, words[0], f"{words[0]} commands")
                 groups[words[0]] = group_parser.add_subparsers(
                     dest=f"{words[0]}_command", required=True, metavar="SUBCOMMAND"
                 )
-            sub = groups[words[0]].add_parser(words[1], help=help_text, description=help_text)
+            sub = _add_parser(groups[words[0]], words[1], help_text)
         configure = module.configure
         if len(words) > 1 and hasattr(module, f"configure_{words[1].replace('-', '_')}"):
             configure = getattr(module, f"configure_{words[1].replace('-', '_')}")
@@ -65,13 +130,17 @@ def build_parser() -> argparse.ArgumentParser:
         run = module.run
         if len(words) > 1 and hasattr(module, f"run_{words[1].replace('-', '_')}"):
             run = getattr(module, f"run_{words[1].replace('-', '_')}")
-        sub.set_defaults(_run=run)
+        sub.set_defaults(_run=run, _parser=sub)
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args, extra = parser.parse_known_args(argv)
+    if extra:
+        # Named by the command it was given to, not by ``crosspath``.
+        command: argparse.ArgumentParser = getattr(args, "_parser", parser)
+        command.error(f"unrecognized arguments: {' '.join(extra)}")
     result: int = args._run(args)
     return result
 

@@ -1,7 +1,11 @@
 """``crosspath monitor --config FILE``: owns a daemon run, records ground truth, writes the result.
 
 The monitor stands for the simulator's bookkeeping: it never takes part in
-V2X. One run, step by step:
+V2X. Every decision below (which step is complete, late and missing reports,
+when to repeat the start, when the run fails or is over) is made by the pure
+:class:`~services.sim.truth.MonitorCore`; this daemon is its shell: it turns
+truth, stats and liveliness into calls of the core, polls it at its deadlines
+and sends what it says. One run, step by step:
 
 1. **Wait for the actors.** It watches the liveliness tokens
    ``{prefix}/sim/alive/{node}`` until every expected actor is present: every
@@ -26,14 +30,18 @@ V2X. One run, step by step:
    run time reaches ``max_sim_s`` (the scenario's unless configured), it
    publishes :class:`~services.edge.plumbing.StopRun`, waits up to
    ``stats_wait_s`` for every actor's final stats report, and builds the run
-   result of DESIGN.md (``services.sim.results.run_result``, ``harness``
-   ``"daemons"``) with the ``network`` section (:func:`network_summary`),
-   writes it as JSON to ``json_out`` if set, prints it as tables, and exits 0.
+   result of DESIGN.md (a ``services.model.results.RunResult``, ``harness``
+   ``"daemons"``, its provenance's channel ``zenoh``) with the ``network`` section
+   (:func:`network_summary`), writes it as JSON to ``json_out`` if set, prints it
+   as tables, and exits 0.
 
 The run fails (exit 1, a partial result with ``error`` is still written) when
 an actor is missing at the start, does not acknowledge, or loses its
 liveliness token during the run (crashed or disconnected), or when the monitor
-is stopped by SIGTERM/SIGINT; the actors are told with a stop message.
+is stopped by SIGTERM/SIGINT; the actors are told with a stop message. A bad
+truth or stats report is counted and dropped (``services.edge.shell``); a bug
+of ours in a handler is logged with its traceback, fails the run the same way
+(``monitor hit an internal error ...``) and the monitor exits 1.
 
 Fault experiments (the network lab, ``services.supervise.lab``) use three
 optional settings:
@@ -71,7 +79,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import contextlib
 import json
 import logging
 import math
@@ -85,43 +92,39 @@ from typing import Annotated, Any, Final
 from pydantic import Field, field_validator
 
 from protocol import keys
-from services.edge.clock import RunClock
+from services.edge.args import (
+    non_negative_float,
+    non_negative_int,
+    output_file,
+    positive_float,
+    run_speed,
+)
 from services.edge.plumbing import (
     PlumbingError,
     StartRun,
     StatsReport,
     StopRun,
-    TruthReport,
-    all_alive,
     all_truths,
     control_key,
     decode_stats,
-    decode_truth,
     encode_control,
-    node_of_alive_key,
-    truth_key,
 )
-from services.edge.settings import (
-    CommonDaemonConfig,
-    ConfigError,
-    add_common_arguments,
-    exit_on_config_error,
-)
-from services.edge.shell import (
-    DaemonShell,
-    load_daemon_config,
-    load_daemon_scenario,
-    run_daemon,
-    wait_any,
-    wait_event,
-)
+from services.edge.provenance import origin
+from services.edge.settings import CommonDaemonConfig, ConfigError
+from services.edge.shell import DaemonBase, DaemonCommand, add_daemon_arguments, wait_any
 from services.edge.stats import merge_snapshots, network_section
-from services.edge.transport import Transport
-from services.model.scenario import Scenario
+from services.model.results import ChannelParams, NetworkSection, RunResult
 from services.model.types import Policy, RunMode
-from services.sim.car import all_at_goal
 from services.sim.metrics import MetricsRecorder
-from services.sim.results import run_result
+from services.sim.results import provenance, run_result
+from services.sim.truth import (
+    START_REPEAT_S,
+    TRACE_FIELDS,
+    TRUTH_WAIT_S,
+    MonitorCore,
+    MonitorRules,
+    TraceRow,
+)
 
 __all__ = [
     "START_REPEAT_S",
@@ -130,6 +133,7 @@ __all__ = [
     "V2X_STREAMS",
     "MonitorConfig",
     "MonitorService",
+    "command",
     "configure",
     "expected_receivers",
     "format_network",
@@ -141,20 +145,11 @@ __all__ = [
 
 log = logging.getLogger("crosspath.monitor")
 
-START_REPEAT_S: Final = 0.25
-"""Wall seconds between repetitions of the start message until every actor acknowledged."""
-
-TRUTH_WAIT_S: Final = 1.0
-"""Wall seconds a step waits for a missing car's ground truth before it is recorded."""
-
-POLL_S: Final = 0.05
-"""Wall seconds between two looks at timeouts in the monitor's loop."""
+MAX_WAIT_S: Final = 1.0
+"""Longest wall-second wait of the monitor's loop between two polls of its core."""
 
 V2X_STREAMS: Final = ("fp", "ap", "cmd", "beacon")
 """The streams of the ``network`` section, in table order."""
-
-TRACE_FIELDS: Final = ("t", "vehicle", "x", "y", "s", "speed", "mode", "reason")
-"""Columns of the optional ``trace`` of the result (s, m, m, m, m/s, mode name, reason)."""
 
 _SNAPSHOT_KEYS: Final = frozenset({"node", "time_s", "streams"})
 """Keys of a stats snapshot that are not extra per-node fields."""
@@ -225,293 +220,221 @@ def network_summary(
     return section
 
 
-def format_network(network: Mapping[str, Any]) -> str:
+def format_network(network: NetworkSection | None) -> str:
     """The ``network`` section as a table (one row per stream, then the total)."""
 
-    def num(value: object, fmt: str) -> str:
+    def num(value: float | None, fmt: str) -> str:
         return "-" if value is None else format(value, fmt)
 
     lines = [
         f"{'stream':<8}{'msgs':>8}{'bytes':>10}{'kbps/veh':>10}{'p50 [ms]':>10}"
         f"{'p99 [ms]':>10}{'delivery':>10}{'malformed':>10}"
     ]
-    names = [s for s in V2X_STREAMS if s in network]
-    names += sorted(k for k in network if k not in V2X_STREAMS and isinstance(network[k], Mapping))
+    streams = {} if network is None else network.streams
+    names: list[str] = [s for s in V2X_STREAMS if s in streams]
+    names += sorted(k for k in streams if k not in V2X_STREAMS)
     for name in names:
-        e = network[name]
+        e = streams[name]
         lines.append(
-            f"{name:<8}{e['msgs']:>8}{e['bytes']:>10}{num(e['kbps_per_vehicle'], '.1f'):>10}"
-            f"{num(e['latency_ms_p50'], '.2f'):>10}{num(e['latency_ms_p99'], '.2f'):>10}"
-            f"{num(e['delivery_ratio'], '.3f'):>10}{e.get('malformed', 0):>10}"
+            f"{name:<8}{e.msgs:>8}{e.bytes:>10}{num(e.kbps_per_vehicle, '.1f'):>10}"
+            f"{num(e.latency_ms_p50, '.2f'):>10}{num(e.latency_ms_p99, '.2f'):>10}"
+            f"{num(e.delivery_ratio, '.3f'):>10}{e.malformed:>10}"
         )
-    lines.append(f"total {num(network.get('total_kbps_per_vehicle'), '.1f')} kbps per vehicle")
+    total = None if network is None else network.total_kbps_per_vehicle
+    lines.append(f"total {num(total, '.1f')} kbps per vehicle")
     return "\n".join(lines)
 
 
-class MonitorService:
-    """The monitor daemon (see module docstring); ``result`` and ``exit_code`` after the run."""
+class MonitorService(DaemonBase[MonitorConfig]):
+    """The monitor daemon (see module docstring): a thin shell over the pure
+    :class:`~services.sim.truth.MonitorCore`; ``result`` and ``exit_code`` after the run."""
 
-    def __init__(
-        self,
-        config: MonitorConfig,
-        scenario: Scenario,
-        transport: Transport | None = None,
-        *,
-        time_fn: Callable[[], float] = time.time,
-    ) -> None:
-        self.config = config
-        self.scenario = scenario
-        self.shell = DaemonShell(config, "monitor", transport, time_fn=time_fn)
-        self.time_fn = time_fn
-        self.prefix = config.key_prefix
-        params = scenario.params
-        self.mode = config.mode
+    service = "monitor"
+    periodic_stats = False
+
+    def setup(self) -> None:
+        cfg = self.config
+        scenario = self.scenario
+        self.mode = cfg.mode
         self.vehicles = tuple(v.id for v in scenario.vehicles)
-        self.rsus = tuple(r.id for r in scenario.rsus) if config.mode is RunMode.RSU else ()
+        self.rsus = tuple(r.id for r in scenario.rsus) if cfg.mode is RunMode.RSU else ()
         self.expected = frozenset(self.vehicles + self.rsus)
-        self.max_sim_s = config.max_sim_s if config.max_sim_s is not None else params.max_sim_s
-        self.dt = 1.0 / params.physics_hz
-        self.alive: set[str] = set()
-        self.acked: set[str] = set()
-        self.reports: dict[str, StatsReport] = {}
-        self.start: StartRun | None = None
-        self.clock: RunClock | None = None
-        self.metrics = MetricsRecorder(scenario)
-        self.pending: dict[int, dict[str, TruthReport]] = {}
-        self.latest: dict[str, TruthReport] = {}
-        self.next_step = 0
-        self.max_step_seen = -1
-        self.last_t: float | None = None
-        self.truth_gaps = 0
-        self.truth_late = 0
-        self.done_reason: str | None = None
-        self.failure: str | None = None
-        self.result: dict[str, Any] | None = None
-        self.exit_code = 0
-        self.end_wall: float | None = None
-        self.may_crash = frozenset(config.expect_crash)
-        self.crashes: list[dict[str, Any]] = []
-        """Liveliness losses and returns of ``expect_crash`` nodes during the run."""
-        self.earlier_reports: dict[str, list[StatsReport]] = {}
-        """Per node, the latest report of each earlier incarnation (see ``boot``)."""
-        self.trace_rows: list[tuple[float, str, float, float, float, float, str, str]] = []
-        self._changed = asyncio.Event()
-
-    # ------------------------------------------------------------------ Service
-
-    async def startup(self) -> None:
-        if set(self.vehicles) & set(self.rsus):
-            raise ValueError("a vehicle and an RSU share an id: stats keys would collide")
+        self.max_sim_s = cfg.max_sim_s if cfg.max_sim_s is not None else scenario.params.max_sim_s
+        self.may_crash = frozenset(cfg.expect_crash)
         unknown = self.may_crash - self.expected
         if unknown:
-            raise ValueError(
-                f"expect_crash names nodes that are not actors of this run: {sorted(unknown)}"
-            )
-        await self.shell.open()
+            problem = f"not actors of this run: {', '.join(sorted(unknown))}"
+            raise ConfigError([("expect_crash", problem)])
+        rules = MonitorRules(
+            run_id=cfg.run_id or new_run_id(self.time_fn),
+            vehicles=self.vehicles,
+            rsus=self.rsus,
+            max_sim_s=self.max_sim_s,
+            speed=cfg.time.speed,
+            epoch_unix=cfg.time.epoch_unix,
+            start_delay_s=cfg.start_delay_s,
+            wait_actors_s=cfg.wait_actors_s,
+            ack_timeout_s=cfg.ack_timeout_s,
+            stats_wait_s=cfg.stats_wait_s,
+            may_crash=self.may_crash,
+            trace=cfg.trace,
+        )
+        try:
+            self.core = MonitorCore(scenario, rules)
+        except ValueError as exc:
+            raise ConfigError([("scenario", str(exc))]) from None
+        self.reports: dict[str, StatsReport] = {}
+        self.earlier_reports: dict[str, list[StatsReport]] = {}
+        """Per node, the latest report of each earlier incarnation (see ``boot``)."""
+        self.start: StartRun | None = None
+        self.result: RunResult | None = None
+        self.exit_code = 0
+        self._start_payload = b""
+        self._wake = asyncio.Event()
+        self._halt_reason = "stopped by a signal"
+
+    # ------------------------------------------------------------------ the core's state
+
+    @property
+    def failure(self) -> str | None:
+        """Why the run failed, if it did."""
+        return self.core.failure
+
+    @property
+    def done_reason(self) -> str | None:
+        return self.core.done_reason
+
+    @property
+    def end_wall(self) -> float | None:
+        return self.core.end_wall
+
+    @property
+    def crashes(self) -> list[dict[str, Any]]:
+        return self.core.crashes
+
+    @property
+    def next_step(self) -> int:
+        return self.core.truth.next_step
+
+    @property
+    def last_t(self) -> float | None:
+        return self.core.truth.last_t
+
+    @property
+    def truth_gaps(self) -> int:
+        return self.core.truth.gaps
+
+    @property
+    def truth_late(self) -> int:
+        return self.core.truth.late
+
+    @property
+    def metrics(self) -> MetricsRecorder:
+        return self.core.truth.metrics
+
+    @property
+    def trace_rows(self) -> list[TraceRow]:
+        return self.core.truth.trace_rows
+
+    # ------------------------------------------------------------------ DaemonBase
+
+    def subscribe(self) -> None:
         p = self.prefix
         self.shell.subscribe_plumbing(all_truths(prefix=p), self._on_truth)
         self.shell.subscribe_plumbing(keys.all_stats(prefix=p), self._on_stats)
-        self.shell.transport.watch_liveliness(all_alive(prefix=p), self._on_liveliness)
-        self.shell.announce()
-        log.info(
-            "monitor ready: %s mode, waiting for %s", self.mode, ", ".join(sorted(self.expected))
-        )
+        self.shell.watch_alive(self._on_alive)
 
-    async def run(self, stop: asyncio.Event) -> None:
-        try:
-            await self._run(stop)
-        finally:
-            if self.failure is not None:
-                self.exit_code = 1
-                log.error("run failed: %s", self.failure)
+    def ready_message(self) -> str:
+        return f"monitor ready: {self.mode} mode, waiting for {', '.join(sorted(self.expected))}"
 
-    async def shutdown(self) -> None:
-        await self.shell.close()
+    def halt(self, reason: str) -> None:
+        self._halt_reason = reason
+        self._wake.set()
 
-    # ------------------------------------------------------------------ the run
-
-    async def _run(self, stop: asyncio.Event) -> None:
+    async def work(self, halt: asyncio.Event) -> None:
+        """Poll the core after every input and at its deadlines; act on what it says."""
         cfg = self.config
-        loop = asyncio.get_running_loop()
-        deadline = loop.time() + cfg.wait_actors_s
-        while not self.expected <= self.alive:
-            if stop.is_set():
-                self.failure = "stopped before the run started"
-                return
-            if loop.time() > deadline:
-                missing = ", ".join(sorted(self.expected - self.alive))
-                self.failure = (
-                    f"actors not present after {cfg.wait_actors_s:g} s: {missing} "
-                    "(no liveliness token; are their daemons running and connected?)"
-                )
-                return
-            self._changed.clear()
-            await _wait_any_for(self._changed, stop, 0.2)
-        now_wall = self.time_fn()
-        epoch = (
-            cfg.time.epoch_unix
-            if cfg.time.epoch_unix is not None
-            else (now_wall + cfg.start_delay_s)
-        )
-        start = StartRun(
-            run_id=cfg.run_id or new_run_id(self.time_fn),
-            scenario=self.scenario.name,
-            mode=self.mode,
-            policy=cfg.policy,
-            seed=cfg.seed,
-            start_times=self.scenario.draw_start_times(cfg.seed),
-            epoch_unix=epoch,
-            speed=cfg.time.speed,
-            max_sim_s=self.max_sim_s,
-            monitor=self.shell.node,
-            vehicles=self.vehicles,
-            rsus=self.rsus,
-        )
-        self.start = start
-        self.clock = RunClock(epoch, cfg.time.speed, time_fn=self.time_fn)
-        if cfg.start_file is not None:
-            _write_start_file(cfg.start_file, start)
-        log.info(
-            "starting run %s (%s, policy %s, seed %d, speed %g) in %.2f s",
-            start.run_id,
-            start.mode,
-            start.policy,
-            start.seed,
-            start.speed,
-            epoch - now_wall,
-        )
-        payload = encode_control(start)
-        self.shell.publish_plumbing(control_key(prefix=self.prefix), payload)
-        last_sent = loop.time()
-        while self.done_reason is None and self.failure is None:
-            await wait_event(stop, POLL_S)
-            if stop.is_set():
-                self.failure = "monitor stopped by a signal before the run was over"
-                break
-            unacked = self.expected - self.acked
-            if unacked and self.time_fn() > epoch + cfg.ack_timeout_s:
-                self.failure = (
-                    f"no acknowledgement of run {start.run_id} from "
-                    f"{', '.join(sorted(unacked))} within {cfg.ack_timeout_s:g} s of its start"
-                )
-                break
-            if (unacked or self.may_crash) and loop.time() - last_sent >= START_REPEAT_S:
-                # With expected crashes the start is repeated all run long: a restarted
-                # daemon joins the run in progress (the others ignore a start they have seen).
-                self.shell.publish_plumbing(control_key(prefix=self.prefix), payload)
-                last_sent = loop.time()
-            self._advance()
-        self.end_wall = self.time_fn()
-        sim_s = self.last_t or 0.0
-        reason = self.done_reason or self.failure or "stopped"
-        stop_msg = StopRun(start.run_id, reason[:500], sim_s)
-        self.shell.publish_plumbing(control_key(prefix=self.prefix), encode_control(stop_msg))
-        log.info("run %s over at %.2f s: %s", start.run_id, sim_s, reason)
-        await self._wait_final_stats(stop)
+        core = self.core
+        try:
+            while True:
+                if halt.is_set():
+                    core.abort(self._halt_reason)
+                actions = core.poll(self.time_fn())
+                if actions.start:
+                    self._send_start()
+                if actions.stop is not None:
+                    self._send_stop(actions.stop)
+                if actions.over:
+                    break
+                self._wake.clear()
+                deadline = core.next_deadline()
+                wait = MAX_WAIT_S if deadline is None else deadline - self.time_fn()
+                events = (self._wake,) if halt.is_set() else (self._wake, halt)
+                await wait_any(*events, timeout=min(max(wait, 0.0), MAX_WAIT_S))
+        finally:
+            if core.failure is not None:
+                self.exit_code = 1
+                log.error("run failed: %s", core.failure)
+        if self.start is None:
+            return
         self.result = self.build_result()
         if cfg.json_out is not None:
             cfg.json_out.parent.mkdir(parents=True, exist_ok=True)
-            cfg.json_out.write_text(json.dumps(self.result, indent=2) + "\n")
+            cfg.json_out.write_text(self.result.to_json() + "\n")
 
-    async def _wait_final_stats(self, stop: asyncio.Event) -> None:
-        loop = asyncio.get_running_loop()
-        deadline = loop.time() + self.config.stats_wait_s
-        while loop.time() < deadline:
-            finals = {n for n, r in self.reports.items() if r.final}
-            if self.expected <= finals:
-                return
-            # a lost actor sends no final report: do not wait for it
-            if self.failure is not None and (self.expected & self.alive) <= finals:
-                return
-            # a node that crashed as expected and is not back sends none either
-            gone = self.may_crash - self.alive
-            if gone and self.expected - gone <= finals:
-                return
-            await asyncio.sleep(POLL_S)
-        missing = sorted(self.expected - {n for n, r in self.reports.items() if r.final})
-        if missing:
-            log.warning("no final stats from %s; using their latest", ", ".join(missing))
+    def _send_start(self) -> None:
+        """Publish the start message: made and logged the first time, then repeated."""
+        if self.start is None:
+            cfg = self.config
+            epoch = self.core.epoch
+            if epoch is None:  # the core says start only once it set the epoch
+                raise RuntimeError("the run started without an epoch")
+            start = StartRun(
+                run_id=self.core.rules.run_id,
+                scenario=self.scenario.name,
+                mode=self.mode,
+                policy=cfg.policy,
+                seed=cfg.seed,
+                start_times=self.scenario.draw_start_times(cfg.seed),
+                epoch_unix=epoch,
+                speed=cfg.time.speed,
+                max_sim_s=self.max_sim_s,
+                monitor=self.node,
+                vehicles=self.vehicles,
+                rsus=self.rsus,
+            )
+            self.start = start
+            self._start_payload = encode_control(start)
+            if cfg.start_file is not None:
+                _write_start_file(cfg.start_file, start)
+            log.info(
+                "starting run %s (%s, policy %s, seed %d, speed %g) in %.2f s",
+                start.run_id,
+                start.mode,
+                start.policy,
+                start.seed,
+                start.speed,
+                epoch - self.time_fn(),
+            )
+        self.shell.publish_plumbing(control_key(prefix=self.prefix), self._start_payload)
 
-    # ------------------------------------------------------------------ ground truth
-
-    def _on_truth(self, key: str, payload: bytes) -> None:
+    def _send_stop(self, reason: str) -> None:
         start = self.start
         if start is None:
             return
-        report = decode_truth(payload)
-        vid = report.vehicle
-        if report.run_id != start.run_id:
-            return
-        if vid not in self.vehicles or key != truth_key(vid, prefix=self.prefix):
-            raise PlumbingError(f"truth of {vid!r} on {key}: not a car of this run")
-        prev = self.latest.get(vid)
-        if prev is None or report.step > prev.step:
-            self.latest[vid] = report
-        if report.step < self.next_step:
-            self.truth_late += 1
-            return
-        self.pending.setdefault(report.step, {})[vid] = report
-        self.max_step_seen = max(self.max_step_seen, report.step)
-        self._advance()
+        sim_s = self.last_t or 0.0
+        stop_msg = StopRun(start.run_id, reason[:500], sim_s)
+        self.shell.publish_plumbing(control_key(prefix=self.prefix), encode_control(stop_msg))
+        log.info("run %s over at %.2f s: %s", start.run_id, sim_s, reason)
 
-    def _advance(self) -> None:
-        """Record every step that is complete (or waited for long enough), in order."""
-        clock = self.clock
-        if clock is None:
-            return
-        lag_steps = max(1, round(1.0 / self.dt))
-        while self.done_reason is None and self.failure is None:
-            k = self.next_step
-            reports = self.pending.get(k, {})
-            complete = len(reports) == len(self.vehicles)
-            if not complete:
-                overdue = (clock.now() - k * self.dt) / clock.speed > TRUTH_WAIT_S
-                ahead = self.max_step_seen >= k + lag_steps
-                if not (overdue or ahead) or (not reports and not self.latest):
-                    return
-            self.pending.pop(k, None)
-            self._record(k, reports)
-            self.next_step = k + 1
+    # ------------------------------------------------------------------ inputs
 
-    def _record(self, k: int, reports: Mapping[str, TruthReport]) -> None:
-        now = k * self.dt
-        rows: list[TruthReport] = []
-        for vid in self.vehicles:
-            report = reports.get(vid)
-            if report is None:
-                report = self.latest.get(vid)
-                if report is None:
-                    continue
-                self.truth_gaps += 1
-            rows.append(report)
-        states = [r.state for r in rows]
-        if self.config.trace:
-            self.trace_rows.extend(
-                (
-                    round(now, 3),
-                    r.vehicle,
-                    round(r.state.x, 3),
-                    round(r.state.y, 3),
-                    round(r.state.s, 3),
-                    round(r.state.speed, 3),
-                    r.mode,
-                    r.reason,
-                )
-                for r in rows
-            )
-        self.metrics.record(
-            now,
-            states,
-            {r.vehicle: r.mode for r in rows},
-            {r.vehicle: r.reason for r in rows},
-        )
-        self.last_t = now
-        if now >= self.max_sim_s:
-            self.done_reason = f"max_sim_s ({self.max_sim_s:g} s) reached"
-        elif len(states) == len(self.vehicles) and all_at_goal(self.scenario, states):
-            self.done_reason = "every car stands at its goal"
-
-    # ------------------------------------------------------------------ stats, liveliness
+    def _on_truth(self, key: str, payload: bytes) -> None:
+        report = self.shell.run_truth(key, payload, self.start)
+        if report is not None:
+            self.core.on_truth(self.time_fn(), report)
+            if self.core.done_reason is not None:  # else nothing for the loop to do yet
+                self._wake.set()
 
     def _on_stats(self, key: str, payload: bytes) -> None:
         report = decode_stats(payload)
@@ -524,7 +447,6 @@ class MonitorService:
             merge_snapshots([report.snapshot])
         except ValueError as exc:
             raise PlumbingError(f"stats of {report.node}: {exc}") from None
-        self.acked.add(report.node)
         prev = self.reports.get(report.node)
         boot = report.snapshot.get("boot")
         prev_boot = None if prev is None else prev.snapshot.get("boot")
@@ -534,32 +456,16 @@ class MonitorService:
             prev = None
         if prev is None or not prev.final:
             self.reports[report.node] = report
+        self.core.on_stats(report.node, self.reports[report.node].final)
+        self._wake.set()
 
-    def _on_liveliness(self, key: str, alive: bool) -> None:
-        try:
-            node = node_of_alive_key(key, prefix=self.prefix)
-        except keys.BadKey:
-            return
-        self._changed.set()
-        running = self.start is not None and self.done_reason is None and self.failure is None
-        if running and node in self.may_crash and (alive != (node in self.alive)):
-            clock = self.clock
-            t = None if clock is None else round(clock.now(), 3)
-            self.crashes.append({"node": node, "event": "back" if alive else "lost", "t_s": t})
-            log.warning("%s %s at run time %s", node, "is back" if alive else "lost", t)
-        if alive:
-            self.alive.add(node)
-            return
-        self.alive.discard(node)
-        if running and node in self.expected and node not in self.may_crash:
-            self.failure = (
-                f"{node} lost: its liveliness token disappeared during the run "
-                "(daemon crashed, was stopped or lost its connection)"
-            )
+    def _on_alive(self, node: str, alive: bool) -> None:
+        self.core.on_alive(self.time_fn(), node, alive)
+        self._wake.set()
 
     # ------------------------------------------------------------------ result
 
-    def build_result(self) -> dict[str, Any]:
+    def build_result(self) -> RunResult:
         """The run result of DESIGN.md with ``network``; partial (``error``) after a failure."""
         start = self.start
         if start is None:
@@ -576,12 +482,8 @@ class MonitorService:
         ]
         network = network_summary(snapshots, len(self.vehicles), len(self.rsus), sim_s)
         extra: dict[str, Any] = {
-            "scenario": self.scenario.name,
             "run_id": start.run_id,
-            "harness": "daemons",
             "speed": start.speed,
-            "start_times": {vid: round(t, 4) for vid, t in start.start_times.items()},
-            "speedup_vs_real_time": round(sim_s / wall_s, 1) if wall_s > 0 else None,
             "end_reason": self.done_reason or self.failure,
             "truth": {
                 "steps": self.next_step,
@@ -605,15 +507,24 @@ class MonitorService:
             extra["trace"] = [list(row) for row in self.trace_rows]
         if self.failure is not None:
             extra["error"] = self.failure
-        policy = str(start.policy) if start.mode is RunMode.RSU else None
         return run_result(
             self.metrics.result(),
             mode=start.mode,
-            policy=policy,
+            policy=start.policy if start.mode is RunMode.RSU else None,
             seed=start.seed,
             sim_s=sim_s,
             wall_s=wall_s,
-            extra=extra,
+            scenario=self.scenario.name,
+            start_times=dict(start.start_times),
+            harness="daemons",
+            provenance=provenance(
+                self.scenario,
+                origin(self.config.scenario),
+                ChannelParams(kind="zenoh"),
+                start.mode,
+                start.policy,
+            ),
+            **extra,
         )
 
 
@@ -653,28 +564,47 @@ def _write_start_file(path: Path, start: StartRun) -> None:
     tmp.replace(path)
 
 
-async def _wait_any_for(a: asyncio.Event, b: asyncio.Event, timeout: float) -> None:
-    with contextlib.suppress(TimeoutError):
-        await asyncio.wait_for(wait_any(a, b), timeout)
-
-
 # --------------------------------------------------------------------------- CLI
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
     """Options of ``crosspath monitor``."""
-    add_common_arguments(parser)
-    group = parser.add_argument_group("run")
-    group.add_argument("--scenario", type=Path, metavar="FILE", help="scenario file (TOML)")
+    group = add_daemon_arguments(parser, "run")
     group.add_argument("--mode", choices=[m.value for m in RunMode], help="default rsu")
     group.add_argument("--policy", choices=[p.value for p in Policy], help="default paper")
-    group.add_argument("--seed", type=int, metavar="N", help="seed of the start times")
-    group.add_argument("--speed", type=float, metavar="X", help="run seconds per wall second")
-    group.add_argument("--max-sim-s", type=float, metavar="S", help="run time limit [s]")
-    group.add_argument("--json", type=Path, metavar="OUT", help="write the run result here")
+    fields = MonitorConfig.model_fields  # the defaults, unless --config, env or --set say else
+    group.add_argument(
+        "--seed",
+        type=non_negative_int,
+        metavar="N",
+        help=f"seed of the start times (default {fields['seed'].default})",
+    )
+    group.add_argument(
+        "--speed",
+        type=run_speed,
+        metavar="X",
+        help="run seconds per wall second, up to 1000 (default 1)",
+    )
+    group.add_argument(
+        "--max-sim-s",
+        type=positive_float,
+        metavar="S",
+        help="run time limit [s] (default: the scenario's)",
+    )
+    group.add_argument("--json", type=output_file, metavar="OUT", help="write the run result here")
     group.add_argument("--run-id", metavar="ID", help="id of the run (default: generated)")
-    group.add_argument("--start-delay", type=float, metavar="S", help="wall s before run time 0")
-    group.add_argument("--wait-actors", type=float, metavar="S", help="wall s to wait for actors")
+    group.add_argument(
+        "--start-delay",
+        type=non_negative_float,
+        metavar="S",
+        help=f"wall s before run time 0 (default {fields['start_delay_s'].default:g})",
+    )
+    group.add_argument(
+        "--wait-actors",
+        type=positive_float,
+        metavar="S",
+        help=f"wall s to wait for actors (default {fields['wait_actors_s'].default:g})",
+    )
     group.add_argument(
         "--expect-crash",
         action="append",
@@ -685,7 +615,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "--trace", action="store_true", default=None, help="add the per-step trace to the result"
     )
     group.add_argument(
-        "--start-file", type=Path, metavar="FILE", help="write run id and epoch here at the start"
+        "--start-file",
+        type=output_file,
+        metavar="FILE",
+        help="write run id and epoch here at the start",
     )
 
 
@@ -706,30 +639,21 @@ _FLAGS: Final = {
 }
 
 
-def load_monitor(args: argparse.Namespace) -> tuple[MonitorConfig, Scenario]:
-    """Config and scenario from the command line; :class:`ConfigError` naming the field."""
-    extra: dict[str, object] = {}
-    for flag, field in _FLAGS.items():
-        value = getattr(args, flag, None)
-        if value is not None:
-            extra[field] = str(value) if isinstance(value, Path) else value
-    config = load_daemon_config(MonitorConfig, args, extra)
-    return config, load_daemon_scenario(config.scenario)
+command = DaemonCommand("monitor", MonitorConfig, MonitorService, _FLAGS)
+load_monitor = command.load
+"""Config and scenario from the command line; :class:`ConfigError` naming the field."""
 
 
 def run(args: argparse.Namespace) -> int:
     """Run one monitored run; print its result; 0 when it completed, 1 when it failed."""
     from services.sim.results import format_summary
 
-    try:
-        config, scenario = load_monitor(args)
-    except ConfigError as exc:
-        return exit_on_config_error("monitor", exc)
-    service = MonitorService(config, scenario)
-    code = run_daemon(config, service)
+    code, service = command.serve(args)
+    if service is None:
+        return code
     if service.result is not None:
         sys.stdout.write(format_summary(service.result) + "\n")
-        sys.stdout.write(format_network(service.result["network"]) + "\n")
+        sys.stdout.write(format_network(service.result.network) + "\n")
         if service.failure is not None:
             sys.stdout.write(f"run FAILED: {service.failure}\n")
         sys.stdout.flush()

@@ -7,12 +7,18 @@ listens on a UDP and a TCP endpoint (port 7447 on every IPv4 interface unless
 ``--listen`` says otherwise) with ``max_links`` 2, so best-effort V2X traffic
 it forwards can take UDP and reliable plumbing TCP. It runs until SIGTERM or
 SIGINT (a second signal forces the exit).
+
+As every daemon (``services.edge.shell``): an endpoint it cannot open ends it
+at once with one line naming the endpoint and the reason, exit status 78; when
+it has ``--connect`` endpoints and none answers, it says so after a few seconds
+and keeps trying.
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import logging
 import sys
 from pathlib import Path
@@ -21,6 +27,7 @@ from typing import Any
 from services.edge.lifecycle import run_service
 from services.edge.logs import configure_logging
 from services.edge.settings import ZenohSettings
+from services.edge.shell import open_transport, watch_reachability
 from services.edge.transport import ZenohTransport
 
 logger = logging.getLogger("crosspath.router")
@@ -34,10 +41,13 @@ class RouterService:
     def __init__(self, settings: ZenohSettings) -> None:
         self.settings = settings
         self.transport: ZenohTransport | None = None
+        self._watch: asyncio.Task[None] | None = None
 
     async def startup(self) -> None:
-        self.transport = ZenohTransport(self.settings)
-        self.transport.open()
+        transport = ZenohTransport(self.settings)
+        await open_transport(transport)  # nothing to close when it fails
+        self.transport = transport
+        self._watch = asyncio.ensure_future(watch_reachability(transport, logger))
         sys.stdout.write(
             f"crosspath router: ready, zid {self.transport.zid()}, "
             f"listening on {', '.join(self.settings.listen) or '(from config file)'}\n"
@@ -48,9 +58,13 @@ class RouterService:
         await stop.wait()
 
     async def shutdown(self) -> None:
+        if self._watch is not None:
+            self._watch.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._watch
         if self.transport is not None:
             self.transport.close()
-        logger.info("router stopped")
+            logger.info("router stopped")
 
 
 def configure(parser: argparse.ArgumentParser) -> None:

@@ -48,8 +48,7 @@ import asyncio
 import math
 import secrets
 import sys
-import time
-from collections.abc import Callable, Iterable
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any, Final
 
@@ -57,24 +56,9 @@ from protocol import Command, FuturePath, Header, Message, Mode, ModeCommand
 from protocol import keys as keyexpr
 from protocol.keys import ParsedKey, Stream
 from services.edge.clock import RunClock
-from services.edge.plumbing import StartRun, StatsReport
-from services.edge.settings import (
-    CommonDaemonConfig,
-    ConfigError,
-    add_common_arguments,
-    exit_on_config_error,
-)
-from services.edge.shell import (
-    END_MARGIN_S,
-    ActorDaemon,
-    DaemonShell,
-    load_daemon_config,
-    load_daemon_scenario,
-    run_daemon,
-    sleep_until,
-)
-from services.edge.transport import Transport
-from services.model.scenario import Scenario
+from services.edge.plumbing import StartRun
+from services.edge.settings import CommonDaemonConfig
+from services.edge.shell import ActorDaemon, DaemonCommand, add_daemon_arguments
 from services.model.types import Policy, RunMode
 from services.rsu.config import rsu_config
 from services.rsu.core import Outgoing, RsuCore
@@ -85,6 +69,7 @@ __all__ = [
     "TERMINATION_ROUNDS",
     "RsuDaemon",
     "RsuDaemonConfig",
+    "command",
     "configure",
     "load_daemon",
     "run",
@@ -100,28 +85,6 @@ TABLE_LOG_MAX: Final = 2000
 """Most changes of the reservation table's cars kept per run for the stats reports."""
 
 
-class _RsuShell(DaemonShell):
-    """The daemon shell whose stats reports also carry the RSU's table (see module doc)."""
-
-    def __init__(
-        self,
-        config: CommonDaemonConfig,
-        service: str,
-        transport: Transport,
-        *,
-        time_fn: Callable[[], float],
-        extras: Callable[[], dict[str, Any]],
-    ) -> None:
-        super().__init__(config, service, transport, time_fn=time_fn)
-        self._extras = extras
-
-    def stats_report(self, final: bool) -> StatsReport:
-        report = super().stats_report(final)
-        snapshot = dict(report.snapshot)
-        snapshot.update(self._extras())
-        return StatsReport(report.node, report.run_id, report.final, snapshot)
-
-
 class RsuDaemonConfig(CommonDaemonConfig):
     """Settings of ``crosspath rsu``: ``node_id`` is the RSU id of the scenario."""
 
@@ -131,32 +94,19 @@ class RsuDaemonConfig(CommonDaemonConfig):
     """Velocity manager policy; None: the one in the monitor's start message."""
 
 
-class RsuDaemon(ActorDaemon):
+class RsuDaemon(ActorDaemon[RsuDaemonConfig]):
     """One RSU: ``RsuCore`` behind a :class:`DaemonShell`."""
 
     service = "rsu"
+    role = "RSU"
 
-    def __init__(
-        self,
-        config: RsuDaemonConfig,
-        scenario: Scenario,
-        transport: Transport | None = None,
-        *,
-        time_fn: Callable[[], float] = time.time,
-    ) -> None:
-        scenario.rsu(config.node_id)  # raises for an unknown RSU
-        super().__init__(config, scenario, transport, time_fn=time_fn)
-        # Same transport, a shell whose stats reports add the table (nothing is open yet).
-        self.shell = _RsuShell(
-            config, self.service, self.shell.transport, time_fn=time_fn, extras=self.table_stats
-        )
-        self.log = self.shell.log
+    def setup(self) -> None:
         self.boot = secrets.token_hex(6)
         self.joined_s: float | None = None
         self.table_log: list[tuple[float, tuple[str, ...]]] = []
         self._table: tuple[str, ...] = ()
         self._seen = 0
-        self.policy_override = config.policy
+        self.policy_override = self.config.policy
         self.core: RsuCore | None = None
         self.vehicles: frozenset[str] = frozenset()
         self.reported: dict[str, Mode] = {}
@@ -164,7 +114,7 @@ class RsuDaemon(ActorDaemon):
         self.terminations_sent = 0
         self._seq = 0
 
-    def subscribe(self) -> None:
+    def subscribe_v2x(self) -> None:
         p = self.prefix
         self.shell.subscribe_v2x(keyexpr.all_future_paths(prefix=p), Stream.FP, self._on_v2x)
         self.shell.subscribe_v2x(
@@ -195,7 +145,7 @@ class RsuDaemon(ActorDaemon):
                 self.table_log.append((round(now, 4), cars))
             self.log.debug("reservation table at %.3f s: %s", now, ", ".join(cars) or "empty")
 
-    def table_stats(self) -> dict[str, Any]:
+    def stats_extras(self) -> dict[str, Any]:
         """The extra fields of this RSU's stats reports (see the module docstring)."""
         return {
             "boot": self.boot,
@@ -226,23 +176,15 @@ class RsuDaemon(ActorDaemon):
         self._table = ()
         self._seen = 0
         self.core = core
-        dt = 1.0 / sc.params.planning_hz
-        limit = start.max_sim_s + END_MARGIN_S
+        hz = sc.params.planning_hz
         # A daemon restarted during a run joins at the current step, not at step 0.
-        step = max(0, math.ceil(clock.now() / dt - 1e-9))
-        self.joined_s = round(step * dt, 4)
-        if step > 0:
-            self.log.warning("joining run %s late, at run time %.2f s", start.run_id, step * dt)
-        while True:
-            now = step * dt
-            if not await sleep_until(clock, now, halt):
-                break
-            if now > limit:
-                self._end(f"run time passed max_sim_s ({start.max_sim_s:g} s)")
-                break
+        first = max(0, math.ceil(clock.now() * hz - 1e-9))
+        self.joined_s = round(first / hz, 4)
+        if first > 0:
+            self.log.warning("joining run %s late, at run time %.2f s", start.run_id, first / hz)
+        async for _step, now in self.ticks(start, clock, halt, hz, first):
             self._send(core.tick(now))
             self._note_table(now)
-            step += 1
 
     def coordinated(self) -> list[str]:
         """Cars of the run this RSU holds in a coordinated mode or still commands."""
@@ -285,10 +227,7 @@ class RsuDaemon(ActorDaemon):
 
 def configure(parser: argparse.ArgumentParser) -> None:
     """Options of ``crosspath rsu``."""
-    add_common_arguments(parser)
-    group = parser.add_argument_group("rsu")
-    group.add_argument("--scenario", type=Path, metavar="FILE", help="scenario file (TOML)")
-    group.add_argument("--id", dest="node_id", metavar="RSU", help="RSU id (node_id)")
+    group = add_daemon_arguments(parser, "rsu", "RSU")
     group.add_argument(
         "--policy",
         choices=[p.value for p in Policy],
@@ -296,32 +235,17 @@ def configure(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def load_daemon(args: argparse.Namespace) -> tuple[RsuDaemonConfig, Scenario]:
-    """Config and scenario from the command line; :class:`ConfigError` naming the field."""
-    extra: dict[str, object] = {}
-    if getattr(args, "scenario", None) is not None:
-        extra["scenario"] = str(args.scenario)
-    if getattr(args, "node_id", None):
-        extra["node_id"] = args.node_id
-    if getattr(args, "policy", None):
-        extra["policy"] = args.policy
-    config = load_daemon_config(RsuDaemonConfig, args, extra)
-    scenario = load_daemon_scenario(config.scenario)
-    if config.node_id not in {r.id for r in scenario.rsus}:
-        raise ConfigError([("node_id", f"no RSU {config.node_id!r} in scenario {scenario.name!r}")])
-    return config, scenario
-
-
-def run(args: argparse.Namespace) -> int:
-    """Run the RSU daemon until a signal; exit 2 on a configuration error."""
-    try:
-        config, scenario = load_daemon(args)
-    except ConfigError as exc:
-        return exit_on_config_error("rsu", exc)
-    return run_daemon(config, RsuDaemon(config, scenario))
+command = DaemonCommand(
+    "rsu",
+    RsuDaemonConfig,
+    RsuDaemon,
+    {"scenario": "scenario", "node_id": "node_id", "policy": "policy"},
+)
+load_daemon = command.load
+"""Config and scenario from the command line; :class:`ConfigError` naming the field."""
+run = command.run
+"""Run the RSU daemon until a signal; exit 2 on a configuration error."""
 
 
 if __name__ == "__main__":  # pragma: no cover
-    _parser = argparse.ArgumentParser(prog="crosspath rsu")
-    configure(_parser)
-    sys.exit(run(_parser.parse_args()))
+    sys.exit(command.main(configure))

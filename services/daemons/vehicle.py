@@ -38,8 +38,6 @@ import asyncio
 import dataclasses
 import math
 import sys
-import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import Final
 
@@ -51,27 +49,12 @@ from services.edge.plumbing import (
     StartRun,
     TruthReport,
     all_truths,
-    decode_truth,
     encode_truth,
     truth_key,
 )
-from services.edge.settings import (
-    CommonDaemonConfig,
-    ConfigError,
-    add_common_arguments,
-    exit_on_config_error,
-)
-from services.edge.shell import (
-    END_MARGIN_S,
-    ActorDaemon,
-    load_daemon_config,
-    load_daemon_scenario,
-    run_daemon,
-    sleep_until,
-)
-from services.edge.transport import Transport
+from services.edge.settings import CommonDaemonConfig
+from services.edge.shell import ActorDaemon, DaemonCommand, add_daemon_arguments
 from services.model.kinematics import TruthState
-from services.model.scenario import Scenario
 from services.model.types import RunMode
 from services.sim.car import CarBody
 from services.sim.sensors import perceive
@@ -82,6 +65,7 @@ __all__ = [
     "MAX_EXTRAPOLATION_S",
     "VehicleDaemon",
     "VehicleDaemonConfig",
+    "command",
     "configure",
     "load_daemon",
     "run",
@@ -116,21 +100,13 @@ def advance(truth: TruthState, now: float) -> TruthState:
     )
 
 
-class VehicleDaemon(ActorDaemon):
+class VehicleDaemon(ActorDaemon[VehicleDaemonConfig]):
     """One car: body + ``VehicleAgent`` behind a :class:`DaemonShell`."""
 
     service = "vehicle"
+    role = "vehicle"
 
-    def __init__(
-        self,
-        config: VehicleDaemonConfig,
-        scenario: Scenario,
-        transport: Transport | None = None,
-        *,
-        time_fn: Callable[[], float] = time.time,
-    ) -> None:
-        scenario.vehicle(config.node_id)  # raises for an unknown vehicle
-        super().__init__(config, scenario, transport, time_fn=time_fn)
+    def setup(self) -> None:
         self.agent: VehicleAgent | None = None
         self.body: CarBody | None = None
         self.others: dict[str, TruthReport] = {}
@@ -138,7 +114,7 @@ class VehicleDaemon(ActorDaemon):
 
     # -- subscriptions
 
-    def subscribe(self) -> None:
+    def subscribe_v2x(self) -> None:
         p = self.prefix
         me = self.node
         self.shell.subscribe_v2x(
@@ -157,15 +133,10 @@ class VehicleDaemon(ActorDaemon):
             agent.on_message(now, message, parsed.rsu)
 
     def _on_truth(self, key: str, payload: bytes) -> None:
-        active = self.active
-        if active is None:
+        report = self.shell.run_truth(key, payload, self.active)
+        if report is None or report.vehicle == self.node:
             return
-        report = decode_truth(payload)
         vid = report.vehicle
-        if report.run_id != active.run_id or vid == self.node or vid not in active.vehicles:
-            return
-        if key != truth_key(vid, prefix=self.prefix):
-            return
         prev = self.others.get(vid)
         if prev is None or report.step > prev.step:
             self.others[vid] = report
@@ -187,16 +158,8 @@ class VehicleDaemon(ActorDaemon):
         reason = Reason.WAITING.value
         fp_key = keyexpr.future_path(me, prefix=self.prefix)
         my_truth_key = truth_key(me, prefix=self.prefix)
-        limit = start.max_sim_s + END_MARGIN_S
-        step = 0
         try:
-            while True:
-                now = step * dt
-                if not await sleep_until(clock, now, halt):
-                    break
-                if now > limit:
-                    self._end(f"run time passed max_sim_s ({start.max_sim_s:g} s)")
-                    break
+            async for step, now in self.ticks(start, clock, halt, p.physics_hz):
                 truth = body.truth(now)
                 if step % plan_every == 0 and now + 1e-9 >= body.start_time:
                     others = [advance(r.state, now) for r in self.others.values()]
@@ -214,8 +177,7 @@ class VehicleDaemon(ActorDaemon):
                 report = TruthReport(start.run_id, step, truth, agent.mode.name, reason)
                 self.shell.publish_plumbing(my_truth_key, encode_truth(report))
                 body.step(now, dt, agent.command(body.state))
-                step += 1
-                self.steps = step
+                self.steps = step + 1
         finally:
             self.agent = None
 
@@ -225,38 +187,17 @@ class VehicleDaemon(ActorDaemon):
 
 def configure(parser: argparse.ArgumentParser) -> None:
     """Options of ``crosspath vehicle``."""
-    add_common_arguments(parser)
-    group = parser.add_argument_group("vehicle")
-    group.add_argument("--scenario", type=Path, metavar="FILE", help="scenario file (TOML)")
-    group.add_argument("--id", dest="node_id", metavar="VEHICLE", help="vehicle id (node_id)")
+    add_daemon_arguments(parser, "vehicle", "VEHICLE")
 
 
-def load_daemon(args: argparse.Namespace) -> tuple[VehicleDaemonConfig, Scenario]:
-    """Config and scenario from the command line; :class:`ConfigError` naming the field."""
-    extra: dict[str, object] = {}
-    if getattr(args, "scenario", None) is not None:
-        extra["scenario"] = str(args.scenario)
-    if getattr(args, "node_id", None):
-        extra["node_id"] = args.node_id
-    config = load_daemon_config(VehicleDaemonConfig, args, extra)
-    scenario = load_daemon_scenario(config.scenario)
-    if config.node_id not in {v.id for v in scenario.vehicles}:
-        raise ConfigError(
-            [("node_id", f"no vehicle {config.node_id!r} in scenario {scenario.name!r}")]
-        )
-    return config, scenario
-
-
-def run(args: argparse.Namespace) -> int:
-    """Run the car daemon until a signal; exit 2 on a configuration error."""
-    try:
-        config, scenario = load_daemon(args)
-    except ConfigError as exc:
-        return exit_on_config_error("vehicle", exc)
-    return run_daemon(config, VehicleDaemon(config, scenario))
+command = DaemonCommand(
+    "vehicle", VehicleDaemonConfig, VehicleDaemon, {"scenario": "scenario", "node_id": "node_id"}
+)
+load_daemon = command.load
+"""Config and scenario from the command line; :class:`ConfigError` naming the field."""
+run = command.run
+"""Run the car daemon until a signal; exit 2 on a configuration error."""
 
 
 if __name__ == "__main__":  # pragma: no cover
-    _parser = argparse.ArgumentParser(prog="crosspath vehicle")
-    configure(_parser)
-    sys.exit(run(_parser.parse_args()))
+    sys.exit(command.main(configure))

@@ -10,7 +10,12 @@ subscriptions), ``run(stop)`` does the work until ``stop`` is set, and
   is cancelled, a best-effort ``shutdown`` gets ``force_timeout`` seconds (unless
   the forced step was ``shutdown`` itself), exit code 1;
 - ``startup`` or ``run`` raising, or ``shutdown`` raising or overrunning
-  ``shutdown_timeout``, also gives exit code 1 (logged).
+  ``shutdown_timeout``, also gives exit code 1, logged with its traceback (a bug
+  of ours, or a failure we did not foresee);
+- ``startup`` or ``run`` raising :class:`ServiceExit` ends the service with one
+  log line (its message, no traceback) and its exit code: what the operator must
+  fix is named, and :data:`EXIT_CONFIG` tells systemd not to restart (the units in
+  ``deploy/systemd/`` list it in ``RestartPreventExitStatus``).
 
 ``run`` may also return on its own (the run is over): that is a normal exit, 0.
 """
@@ -28,6 +33,23 @@ logger = logging.getLogger("crosspath.lifecycle")
 
 EXIT_OK = 0
 EXIT_FAILED = 1
+"""Any failure a restart may cure (systemd's ``Restart=on-failure`` restarts it)."""
+EXIT_CONFIG = 78
+"""``EX_CONFIG`` of sysexits.h: the configuration cannot work (an endpoint that cannot be
+opened); restarting does not help, so the systemd units do not restart on it."""
+
+
+class ServiceExit(Exception):
+    """The service cannot go on, for the reason its one-line message gives.
+
+    :func:`serve` logs the message at ERROR without a traceback and returns
+    ``exit_code`` (the process's exit status).
+    """
+
+    def __init__(self, message: str, exit_code: int = EXIT_FAILED) -> None:
+        super().__init__(message)
+        self.exit_code = exit_code
+
 
 STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT)
 
@@ -111,6 +133,9 @@ async def serve(
             if not supervisor.forced:
                 raise
             code = EXIT_FAILED
+        except ServiceExit as exc:
+            logger.error("%s", exc)
+            code = exc.exit_code
         except Exception:
             logger.exception("service failed")
             code = EXIT_FAILED

@@ -1,26 +1,36 @@
-"""Daemon settings: pydantic models and one loader with a fixed precedence.
+"""Daemon settings: where and how a daemon runs, one loader with a fixed precedence.
 
 Every daemon (vehicle, RSU, monitor) reads a model derived from
-:class:`CommonDaemonConfig`. Values come from, lowest precedence first:
+:class:`CommonDaemonConfig`, a pydantic-settings ``BaseSettings``. What the
+experiment *is* (map, cars, RSU and vehicle knobs) belongs to the scenario file
+(``services.model.scenario``), not here. Values come from, lowest precedence first:
 
 1. the model's defaults;
 2. a TOML file (``--config FILE``);
 3. environment variables ``CROSSPATH_<FIELD>``, ``__`` (double underscore)
-   separating nested fields, e.g. ``CROSSPATH_ZENOH__LISTEN='["udp/0.0.0.0:7447"]'``;
+   separating nested fields, e.g. ``CROSSPATH_ZENOH__LISTEN='["udp/0.0.0.0:7447"]'``,
+   read by pydantic-settings' ``EnvSettingsSource`` with the prefix and delimiter the
+   model declares: lists and tables are JSON, ``null`` is None, anything else is
+   text for pydantic to validate (``4`` for a float, ``true`` for a bool);
 4. command-line overrides: dotted keys, e.g. ``--set zenoh.max_links=4``,
    ``--listen``, ``--connect``, ``--prefix``, ``--log-level``.
 
-Environment and ``--set`` values are parsed as JSON when they are valid JSON
-(``2``, ``true``, ``null``, ``["udp/0.0.0.0:7447"]``, ``"text"``) and kept as
-text otherwise (``udp/0.0.0.0:7447``, ``car-1``); a value that starts like a JSON
-list, object or string but does not parse is an error. Numbers given for text
-fields are accepted as text (``--set node_id=7`` gives ``"7"``).
-Environment variables whose first field is not a field of the model are ignored
-(other crosspath tools may set ``CROSSPATH_*`` variables); unknown nested
-fields and unknown keys anywhere else are errors (``extra="forbid"``).
+``--set`` values are parsed as JSON when they are valid JSON (``2``, ``true``,
+``null``, ``["udp/0.0.0.0:7447"]``, ``"text"``) and kept as text otherwise
+(``udp/0.0.0.0:7447``, ``car-1``); a value that starts like a JSON list, object or
+string but does not parse is an error, as is an environment value that is not the
+JSON its list or table field needs. Numbers given for text fields are accepted as
+text (``--set node_id=7`` gives ``"7"``). Environment variables whose first field
+is not a field of the model are ignored (other crosspath tools may set
+``CROSSPATH_*`` variables); unknown nested fields and unknown keys anywhere else
+are errors (``extra="forbid"``). Each layer replaces what it sets: a table given
+whole (``CROSSPATH_ZENOH__OPTIONS='{...}'``) replaces that table.
 
-Any problem raises :class:`ConfigError` naming the field and the reason;
-:func:`exit_on_config_error` turns it into the CLI's message and exit code 2.
+Any problem raises :class:`ConfigError` naming the field, the reason and, for a
+bad value, where it came from (``(from CROSSPATH_TIME__SPEED)``, the file, or the
+command line); :func:`exit_on_config_error` turns it into the CLI's message and
+exit code 2. Built directly (``RsuDaemonConfig(node_id=...)``) a model reads only
+its arguments: the layering is :func:`load_config`'s job alone.
 
 This module imports no zenoh: :class:`ZenohSettings` is turned into a
 ``zenoh.Config`` by ``services.edge.transport.zenoh_config``.
@@ -38,6 +48,14 @@ from pathlib import Path
 from typing import Annotated, Any, Literal, TextIO, TypeVar
 
 from pydantic import BaseModel, ConfigDict, Field, JsonValue, ValidationError, field_validator
+from pydantic.fields import FieldInfo
+from pydantic_settings import (
+    BaseSettings,
+    EnvSettingsSource,
+    PydanticBaseSettingsSource,
+    SettingsConfigDict,
+    SettingsError,
+)
 
 from protocol import keys
 
@@ -116,10 +134,22 @@ class TimeSettings(BaseModel):
     """Run seconds per wall second (2.0 runs twice as fast as real time)."""
 
 
-class CommonDaemonConfig(BaseModel):
-    """Settings every daemon shares; daemon models subclass this."""
+class CommonDaemonConfig(BaseSettings):
+    """Settings every daemon shares; daemon models subclass this.
 
-    model_config = ConfigDict(extra="forbid", frozen=True, coerce_numbers_to_str=True)
+    The model declares its environment (prefix ``CROSSPATH_``, ``__`` between nested
+    fields); :func:`load_config` layers file < environment < command line.
+    """
+
+    model_config = SettingsConfigDict(
+        extra="forbid",
+        frozen=True,
+        coerce_numbers_to_str=True,
+        validate_default=False,
+        env_prefix=ENV_PREFIX,
+        env_nested_delimiter="__",
+        case_sensitive=False,
+    )
 
     node_id: str
     """This daemon's id: the vehicle or RSU id, or a node name (1..32 of [A-Za-z0-9_-])."""
@@ -145,12 +175,24 @@ class CommonDaemonConfig(BaseModel):
     def _log_level(cls, value: object) -> object:
         return value.upper() if isinstance(value, str) else value
 
+    @classmethod
+    def settings_customise_sources(
+        cls,
+        settings_cls: type[BaseSettings],
+        init_settings: PydanticBaseSettingsSource,
+        env_settings: PydanticBaseSettingsSource,
+        dotenv_settings: PydanticBaseSettingsSource,
+        file_secret_settings: PydanticBaseSettingsSource,
+    ) -> tuple[PydanticBaseSettingsSource, ...]:
+        """Only the arguments when built directly (see the module doc)."""
+        return (init_settings,)
 
-T = TypeVar("T", bound=BaseModel)
+
+T = TypeVar("T", bound=BaseSettings)
 
 
 def parse_value(text: str) -> object:
-    """Turn an environment or ``--set`` value into Python (JSON-or-string, see module doc)."""
+    """Turn a ``--set`` value into Python (JSON-or-string, see module doc)."""
     stripped = text.strip()
     try:
         value: object = json.loads(stripped)
@@ -178,21 +220,76 @@ def _set_path(tree: dict[str, Any], path: Sequence[str], value: object, source: 
     node[path[-1]] = value
 
 
-def _env_layer(model: type[BaseModel], env: Mapping[str, str]) -> list[tuple[list[str], object]]:
-    fields = set(model.model_fields)
-    layer: list[tuple[list[str], object]] = []
+class _EnvSource(EnvSettingsSource):
+    """pydantic-settings' environment source over a given mapping rather than
+    ``os.environ`` (tests and callers pass their own), naming the variable of a value
+    that is not valid JSON."""
+
+    def __init__(self, settings_cls: type[BaseSettings], env: Mapping[str, str]) -> None:
+        self._environ = env  # read by _load_env_vars, which the base __init__ calls
+        super().__init__(settings_cls)
+
+    def _load_env_vars(self) -> Mapping[str, str | None]:
+        return {name.lower(): value for name, value in self._environ.items()}
+
+    def decode_complex_value(self, field_name: str, field: FieldInfo | None, value: Any) -> Any:
+        try:
+            return super().decode_complex_value(field_name, field, value)  # type: ignore[arg-type]
+        except json.JSONDecodeError as exc:
+            suffix = field_name.upper()
+            names = sorted(
+                name
+                for name, text in self._environ.items()
+                if text == value
+                and name.upper().startswith(ENV_PREFIX)
+                and name.upper().endswith(suffix)
+            )
+            name = names[0] if names else ENV_PREFIX + suffix
+            raise ConfigError([(name, f"invalid JSON ({exc.msg} at column {exc.colno})")]) from None
+
+
+def _env_layer(
+    model: type[BaseSettings], env: Mapping[str, str]
+) -> list[tuple[list[str], object, str]]:
+    """(field path, value, variable) of each ``CROSSPATH_*`` variable that names a field of
+    ``model``, in name order, its value parsed by pydantic-settings (``null`` is None)."""
+    try:
+        parsed = _EnvSource(model, env)()
+    except SettingsError as exc:
+        if isinstance(exc.__cause__, ConfigError):
+            raise exc.__cause__ from None
+        raise ConfigError([(f"{ENV_PREFIX}*", str(exc))]) from None
+    layer: list[tuple[list[str], object, str]] = []
     for name in sorted(env):
-        if not name.startswith(ENV_PREFIX):
+        if not name.upper().startswith(ENV_PREFIX):
             continue
         path = [part.lower() for part in name[len(ENV_PREFIX) :].split("__")]
-        if path[0] not in fields:
-            continue
-        try:
-            value = parse_value(env[name])
-        except ValueError as exc:
-            raise ConfigError([(name, str(exc))]) from None
-        layer.append((path, value))
+        node: object = parsed
+        for part in path:
+            if not isinstance(node, dict) or part not in node:
+                break
+            node = node[part]
+        else:
+            layer.append((path, None if env[name].strip() == "null" else node, name))
     return layer
+
+
+def _leaves(tree: Mapping[str, Any], prefix: tuple[str, ...] = ()) -> list[tuple[str, ...]]:
+    """Paths of the values of a TOML document (tables walked into, the rest leaves)."""
+    out: list[tuple[str, ...]] = []
+    for key, value in tree.items():
+        here = (*prefix, key)
+        out.extend(_leaves(value, here) if isinstance(value, dict) and value else [here])
+    return out
+
+
+def _origin(loc: Sequence[object], sources: Sequence[tuple[tuple[str, ...], str]]) -> str | None:
+    """Where the value at ``loc`` came from: the last layer that set it or a table above it."""
+    parts = tuple(str(part) for part in loc)
+    for path, source in reversed(sources):
+        if parts[: len(path)] == path:
+            return source
+    return None
 
 
 def read_toml(path: Path) -> dict[str, Any]:
@@ -214,20 +311,25 @@ def load_config(
 ) -> T:
     """Build ``model`` from a TOML file, then ``CROSSPATH_*`` env vars, then dotted overrides.
 
-    Raises :class:`ConfigError` (with the dotted field path and reason) on any problem.
+    Raises :class:`ConfigError` (with the dotted field path, the reason and the source
+    of the bad value) on any problem.
     """
     tree: dict[str, Any] = read_toml(path) if path is not None else {}
-    for env_path, value in _env_layer(model, env):
-        _set_path(tree, env_path, value, ENV_PREFIX)
+    sources = [(leaf, str(path)) for leaf in _leaves(tree)]
+    for env_path, value, name in _env_layer(model, env):
+        _set_path(tree, env_path, value, name)
+        sources.append((tuple(env_path), name))
     for key, value in overrides.items():
         _set_path(tree, key.split("."), value, key)
+        sources.append((tuple(key.split(".")), "the command line"))
     try:
         return model.model_validate(tree)
     except ValidationError as exc:
-        problems = [
-            (".".join(str(part) for part in error["loc"]) or "<root>", error["msg"])
-            for error in exc.errors()
-        ]
+        problems = []
+        for error in exc.errors():
+            origin = _origin(error["loc"], sources)
+            reason = error["msg"] if origin is None else f"{error['msg']} (from {origin})"
+            problems.append((".".join(str(part) for part in error["loc"]) or "<root>", reason))
         raise ConfigError(problems) from None
 
 

@@ -20,9 +20,25 @@
 - publishes its counters (:class:`~services.edge.plumbing.StatsReport`) on
   ``{prefix}/stats/{node}`` every ``stats_period_s`` and a final one per run.
 
-Nothing a peer sends can raise out of a handler: every handler is wrapped, and
-an unexpected exception in a core is logged (rate limited) and the datagram
-dropped.
+Errors, split as h11 splits them (a peer's protocol error vs our own bug):
+
+- what a peer sent wrong never raises out of a handler: it is checked at this
+  boundary (above), or by the plumbing decoders (``PlumbingError``, counted in
+  ``plumbing_malformed``), or by the pure cores, which count and drop it;
+- anything else a handler raises is a bug of ours. It is logged once at ERROR
+  with its traceback, counted (``internal_errors`` in the stats), the current
+  run is ended (the RSU still sends its terminations) and the daemon exits with
+  status 1, which systemd's ``Restart=on-failure`` restarts: after an exception
+  half-way through a decision the core's state is not known to be consistent, and
+  a restarted daemon rejoins a run in progress (``expect_crash``);
+- an endpoint that cannot be opened (address in use or not on this host, an
+  unknown protocol, a bad port) ends the daemon at startup with one line naming
+  the endpoint and the reason, exit status 78 (``EXIT_CONFIG``, which the systemd
+  units do not restart on); a Zenoh client that reaches none of its routers
+  exits 1 (restarted: the router may come up later);
+- a peer whose connect endpoints do not answer logs one WARNING naming them after
+  :data:`UNREACHABLE_WARN_S` and keeps trying (Zenoh retries), and one INFO line
+  once connected.
 
 Clock-skew tolerance: :data:`MAX_FUTURE_S` and :data:`MAX_AGE_S` are in run
 seconds. On one host there is no skew; across hosts, clocks must agree to well
@@ -34,14 +50,21 @@ Latencies are recorded in *wall* seconds (run-time latency divided by the
 run's speed), so the ``network`` section reports what the network did,
 whatever ``--speed`` was.
 
-:class:`ActorDaemon` is the base of the vehicle and RSU daemons: it follows the
-monitor's run control (``services.edge.plumbing``): it waits for a
+:class:`DaemonBase` is the base of every daemon service (vehicle, RSU,
+monitor): the config, the scenario, the shell, the startup and shutdown, and
+the stop / internal-error handling around its ``work``. :class:`ActorDaemon`
+(vehicle and RSU) follows the monitor's run control
+(``services.edge.plumbing``): it waits for a
 :class:`~services.edge.plumbing.StartRun` naming it, runs one *episode*
 (subclass hook) on the run clock, and ends it on the matching
 :class:`~services.edge.plumbing.StopRun`, when the monitor's liveliness
 token disappears, when run time passes ``max_sim_s`` + :data:`END_MARGIN_S`, or
 on SIGTERM/SIGINT; then it waits for the next start. Starts whose run id was
 seen before, or that arrive while a run is active, are ignored.
+
+:class:`DaemonCommand` is the command line of a daemon: its options, the
+configuration layering (TOML ``--config``, ``CROSSPATH_*`` env, ``--set``, the
+flags) and the exit statuses (2: configuration error).
 """
 
 from __future__ import annotations
@@ -52,14 +75,14 @@ import contextlib
 import logging
 import os
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import AsyncIterator, Callable, Collection, Coroutine, Mapping
 from pathlib import Path
-from typing import Final, TypeVar
+from typing import Any, Final, Generic, TypeVar
 
 from protocol import MAX_DATAGRAM, DecodeError, EncodeError, Message, decode, encode, keys
 from protocol.keys import ParsedKey, Stream
 from services.edge.clock import RunClock
-from services.edge.lifecycle import Service, run_service
+from services.edge.lifecycle import EXIT_CONFIG, EXIT_FAILED, Service, ServiceExit, run_service
 from services.edge.logs import configure_logging
 from services.edge.plumbing import (
     Control,
@@ -67,24 +90,31 @@ from services.edge.plumbing import (
     StartRun,
     StatsReport,
     StopRun,
+    TruthReport,
     alive_key,
     all_alive,
     control_key,
     decode_control,
+    decode_truth,
     encode_stats,
     node_of_alive_key,
+    truth_key,
 )
 from services.edge.settings import (
     CommonDaemonConfig,
     ConfigError,
+    add_common_arguments,
+    exit_on_config_error,
     load_config,
     overrides_from_args,
 )
 from services.edge.stats import NodeStats
 from services.edge.transport import (
     RELIABLE_QOS,
+    LivelinessHandler,
     Subscription,
     Transport,
+    TransportConfigError,
     TransportError,
     ZenohTransport,
     init_zenoh_logging,
@@ -97,12 +127,16 @@ __all__ = [
     "END_MARGIN_S",
     "MAX_AGE_S",
     "MAX_FUTURE_S",
+    "UNREACHABLE_WARN_S",
     "ActorDaemon",
+    "DaemonBase",
+    "DaemonCommand",
     "DaemonShell",
     "RateLimitedLog",
     "V2xHandler",
-    "load_daemon_config",
+    "add_daemon_arguments",
     "load_daemon_scenario",
+    "open_transport",
     "run_daemon",
     "sleep_until",
     "wait_any",
@@ -121,6 +155,9 @@ END_MARGIN_S: Final = 30.0
 DRAIN_S: Final = 0.3
 """Wall seconds an actor keeps counting receptions after it stopped sending, before its
 final stats report (datagrams in flight)."""
+
+UNREACHABLE_WARN_S: Final = 5.0
+"""Wall seconds after which a Zenoh session with connect endpoints but no link says so."""
 
 V2xHandler = Callable[[ParsedKey, Message, float], None]
 """Receives (parsed key, decoded message, run time of reception) on the event loop."""
@@ -154,6 +191,45 @@ class RateLimitedLog:
         self.logger.log(level, msg, *args, exc_info=exc)
 
 
+async def open_transport(transport: Transport) -> None:
+    """Open ``transport`` (Zenoh in a worker thread: connecting may take a while).
+
+    Raises :class:`~services.edge.lifecycle.ServiceExit`: ``EXIT_CONFIG`` with one line
+    naming the endpoint when the settings cannot work, ``EXIT_FAILED`` otherwise.
+    """
+    try:
+        if isinstance(transport, ZenohTransport):
+            await transport.open_async()
+        else:
+            transport.open()
+    except TransportConfigError as exc:
+        raise ServiceExit(str(exc), EXIT_CONFIG) from None
+    except TransportError as exc:
+        raise ServiceExit(str(exc), EXIT_FAILED) from None
+
+
+async def watch_reachability(
+    transport: ZenohTransport, log: logging.Logger, after_s: float = UNREACHABLE_WARN_S
+) -> None:
+    """Warn once when ``transport`` holds no link ``after_s`` after opening, naming its
+    connect endpoints; say when it connects. Zenoh keeps retrying meanwhile."""
+    endpoints = transport.connect_endpoints
+    if not endpoints:
+        return
+    await asyncio.sleep(after_s)
+    if transport.links():
+        return
+    log.warning(
+        "no peer reachable after %g s: nothing answers at %s (daemon or router not running, "
+        "wrong address, or a firewall?); still trying",
+        after_s,
+        ", ".join(endpoints),
+    )
+    while not transport.links():
+        await asyncio.sleep(1.0)
+    log.info("connected: %s", ", ".join(dst for _src, dst in transport.links()))
+
+
 class DaemonShell:
     """Transport, V2X edge, statistics and the current run clock of one daemon."""
 
@@ -164,6 +240,7 @@ class DaemonShell:
         transport: Transport | None = None,
         *,
         time_fn: Callable[[], float] = time.time,
+        extras: Callable[[], Mapping[str, Any]] | None = None,
     ) -> None:
         self.config = config
         self.node = config.node_id
@@ -175,20 +252,29 @@ class DaemonShell:
         self.run_id: str | None = None
         self.clock: RunClock | None = None
         self.plumbing_malformed = 0
+        self.internal_errors = 0
+        """Exceptions our own handlers raised (bugs); the first one stops the daemon."""
+        self.fault: str | None = None
+        """What failed first, once a handler raised."""
+        self.faulted = asyncio.Event()
         self.ratelog = RateLimitedLog(self.log)
+        self._extras = extras
         self._token: Subscription | None = None
-        self._stats_task: asyncio.Task[None] | None = None
+        self._tasks: list[asyncio.Task[None]] = []
+        self._stats_started = False
         self._opened = False
 
     # ------------------------------------------------------------------ life
 
     async def open(self) -> None:
-        """Open the transport (in a worker thread for Zenoh: connecting may take a while)."""
-        if isinstance(self.transport, ZenohTransport):
-            await self.transport.open_async()
-        else:
-            self.transport.open()
+        """Open the transport (:func:`open_transport`) and watch that it reaches a peer."""
+        await open_transport(self.transport)
         self._opened = True
+        if isinstance(self.transport, ZenohTransport):
+            self._spawn(watch_reachability(self.transport, self.log))
+
+    def _spawn(self, coro: Coroutine[Any, Any, None]) -> None:
+        self._tasks.append(asyncio.ensure_future(coro))
 
     def announce(self) -> None:
         """Declare the liveliness token; call after every subscription is declared."""
@@ -199,8 +285,9 @@ class DaemonShell:
 
     def start_stats(self) -> None:
         """Publish a stats report every ``stats_period_s`` until :meth:`close`."""
-        if self._stats_task is None:
-            self._stats_task = asyncio.ensure_future(self._stats_loop())
+        if not self._stats_started:
+            self._stats_started = True
+            self._spawn(self._stats_loop())
 
     async def _stats_loop(self) -> None:
         period = self.config.stats_period_s
@@ -209,10 +296,11 @@ class DaemonShell:
             self.publish_stats(final=False)
 
     async def close(self) -> None:
-        """Stop the stats task, undeclare everything and close the transport; idempotent."""
-        task, self._stats_task = self._stats_task, None
-        if task is not None:
+        """Stop the background tasks, undeclare everything, close the transport; idempotent."""
+        tasks, self._tasks = self._tasks, []
+        for task in tasks:
             task.cancel()
+        for task in tasks:
             with contextlib.suppress(asyncio.CancelledError):
                 await task
         token, self._token = self._token, None
@@ -220,6 +308,39 @@ class DaemonShell:
             token.close()
         self._opened = False
         self.transport.close()
+
+    # ------------------------------------------------------------------ our own bugs
+
+    def guard(self, what: str, call: Callable[[], None]) -> None:
+        """Run a handler's ``call``; an exception out of it is a bug of ours (module doc)."""
+        try:
+            call()
+        except Exception as exc:
+            self.internal_errors += 1
+            if self.fault is None:
+                self.fault = f"{what} failed ({type(exc).__name__}: {exc})"
+                self.log.error("%s failed: a bug, stopping", what, exc_info=exc)
+                self.faulted.set()
+            else:
+                self.ratelog.log(logging.ERROR, "fault", "%s failed again: %r", what, exc)
+
+    def raise_fault(self) -> None:
+        """Raise ``ServiceExit`` (status 1) when a handler failed (traceback logged then)."""
+        if self.fault is not None:
+            raise ServiceExit(f"internal error: {self.fault}; traceback above", EXIT_FAILED)
+
+    def watch_alive(self, handler: LivelinessHandler) -> Subscription:
+        """Follow every node's liveliness token: ``handler(node, alive)`` under :meth:`guard`
+        (a token on a key that names no node is ignored)."""
+
+        def on_change(key: str, alive: bool) -> None:
+            try:
+                node = node_of_alive_key(key, prefix=self.prefix)
+            except keys.BadKey:
+                return
+            self.guard(f"liveliness handler for {node}", lambda: handler(node, alive))
+
+        return self.transport.watch_liveliness(all_alive(prefix=self.prefix), on_change)
 
     # ------------------------------------------------------------------ runs
 
@@ -246,6 +367,23 @@ class DaemonShell:
         """Run time now, or None when no run is active."""
         return None if self.clock is None else self.clock.now()
 
+    def run_truth(self, key: str, payload: bytes, start: StartRun | None) -> TruthReport | None:
+        """A car's ground truth of run ``start``; None outside a run or for another run.
+
+        Raises ``PlumbingError`` (counted by :meth:`subscribe_plumbing`) for a payload
+        that does not decode, or that comes from a car not in the run or on another
+        car's key.
+        """
+        if start is None:
+            return None
+        report = decode_truth(payload)
+        if report.run_id != start.run_id:
+            return None
+        vid = report.vehicle
+        if vid not in start.vehicles or key != truth_key(vid, prefix=self.prefix):
+            raise PlumbingError(f"truth of {vid!r} on {key}: not a car of this run")
+        return report
+
     # ------------------------------------------------------------------ V2X
 
     def _malformed(self, stream: str, key: str, why: str) -> None:
@@ -268,20 +406,14 @@ class DaemonShell:
         Datagrams on a key of ``ignore_vehicle`` (this car's own future path, which
         Zenoh also delivers locally) are skipped without counting. Outside a run,
         valid messages are dropped uncounted (there is no clock to date them), but
-        malformed ones are counted.
+        malformed ones are counted. ``handler`` runs under :meth:`guard`.
         """
 
         def on_datagram(key: str, payload: bytes) -> None:
-            try:
-                self._on_datagram(key, payload, stream, handler, ignore_vehicle)
-            except Exception:
-                self.ratelog.log(
-                    logging.ERROR,
-                    f"handler:{stream}",
-                    "handling a datagram on %s failed",
-                    key,
-                    exc=True,
-                )
+            self.guard(
+                f"handling a datagram on {key}",
+                lambda: self._on_datagram(key, payload, stream, handler, ignore_vehicle),
+            )
 
         return self.transport.subscribe(keyexpr, on_datagram)
 
@@ -363,11 +495,11 @@ class DaemonShell:
     ) -> Subscription:
         """Receive plumbing payloads; the handler raises ``PlumbingError`` for bad ones.
 
-        A ``PlumbingError`` (or any exception) is counted in ``plumbing_malformed``
-        and logged (rate limited); it never reaches the transport.
+        A ``PlumbingError`` (a peer's bad payload) is counted in ``plumbing_malformed``
+        and logged (rate limited); any other exception is a bug (:meth:`guard`).
         """
 
-        def on_payload(key: str, payload: bytes) -> None:
+        def checked(key: str, payload: bytes) -> None:
             try:
                 handler(key, payload)
             except PlumbingError as exc:
@@ -379,15 +511,9 @@ class DaemonShell:
                     key,
                     exc,
                 )
-            except Exception:
-                self.plumbing_malformed += 1
-                self.ratelog.log(
-                    logging.ERROR,
-                    f"plumbing:{keyexpr}",
-                    "handling plumbing message on %s failed",
-                    key,
-                    exc=True,
-                )
+
+        def on_payload(key: str, payload: bytes) -> None:
+            self.guard(f"handling a plumbing message on {key}", lambda: checked(key, payload))
 
         return self.transport.subscribe(keyexpr, on_payload)
 
@@ -401,9 +527,13 @@ class DaemonShell:
         return True
 
     def stats_report(self, final: bool) -> StatsReport:
-        """This node's counters now (run time ``time_s`` when a run is active)."""
+        """This node's counters now (run time ``time_s`` when a run is active), with the
+        daemon's ``extras``."""
         snapshot = self.stats.snapshot(self.now())
         snapshot["plumbing_malformed"] = self.plumbing_malformed
+        snapshot["internal_errors"] = self.internal_errors
+        if self._extras is not None:
+            snapshot.update(self._extras())
         return StatsReport(node=self.node, run_id=self.run_id, final=final, snapshot=snapshot)
 
     def publish_stats(self, final: bool) -> None:
@@ -426,13 +556,13 @@ async def wait_event(event: asyncio.Event, timeout: float) -> bool:
     return event.is_set()
 
 
-async def wait_any(*events: asyncio.Event) -> None:
-    """Return once any of ``events`` is set."""
+async def wait_any(*events: asyncio.Event, timeout: float | None = None) -> None:
+    """Return once any of ``events`` is set, or after ``timeout`` wall seconds."""
     if any(event.is_set() for event in events):
         return
     waiters = [asyncio.ensure_future(event.wait()) for event in events]
     try:
-        await asyncio.wait(waiters, return_when=asyncio.FIRST_COMPLETED)
+        await asyncio.wait(waiters, timeout=timeout, return_when=asyncio.FIRST_COMPLETED)
     finally:
         for waiter in waiters:
             waiter.cancel()
@@ -448,30 +578,133 @@ async def sleep_until(clock: RunClock, run_t: float, halt: asyncio.Event) -> boo
     return False
 
 
-class ActorDaemon:
-    """A vehicle or RSU daemon: follows the monitor's runs (see the module docstring).
+C = TypeVar("C", bound=CommonDaemonConfig)
 
-    Subclasses set ``service`` and implement :meth:`subscribe` (their V2X
-    subscriptions), :meth:`takes_part` and :meth:`episode`; they may override
-    :meth:`on_episode_end` (the RSU sends its terminations there).
+
+class DaemonBase(Generic[C]):
+    """A daemon service: config, scenario and :class:`DaemonShell` (see the module doc).
+
+    Subclasses set ``service`` (the logger and command name) and ``role`` (what its
+    ``node_id`` names in the scenario, for messages), and implement
+    :meth:`node_ids` (None: any id), :meth:`setup` (their own state),
+    :meth:`subscribe` and :meth:`work`; they may override :meth:`halt`,
+    :meth:`stats_extras` and :attr:`periodic_stats`.
     """
 
-    service = "actor"
+    service = "daemon"
+    role = "node"
+    periodic_stats = True
+    """Publish stats every ``stats_period_s`` (the monitor does not)."""
 
     def __init__(
         self,
-        config: CommonDaemonConfig,
+        config: C,
         scenario: Scenario,
         transport: Transport | None = None,
         *,
         time_fn: Callable[[], float] = time.time,
     ) -> None:
+        ids = self.node_ids(scenario)
+        if ids is not None and config.node_id not in ids:
+            problem = f"no {self.role} {config.node_id!r} in scenario {scenario.name!r}"
+            raise ConfigError([("node_id", problem)])
         self.config = config
         self.scenario = scenario
-        self.shell = DaemonShell(config, self.service, transport, time_fn=time_fn)
+        self.time_fn = time_fn
+        self.shell = DaemonShell(
+            config, self.service, transport, time_fn=time_fn, extras=self.stats_extras
+        )
         self.log = self.shell.log
         self.node = config.node_id
         self.prefix = config.key_prefix
+        self.ready = False
+        self._prepare()
+        self.setup()
+
+    # -- hooks
+
+    def _prepare(self) -> None:
+        """State of an intermediate base class (before :meth:`setup`)."""
+
+    @classmethod
+    def node_ids(cls, scenario: Scenario) -> Collection[str] | None:
+        """The ids this daemon may have in ``scenario``; None: any."""
+        return None
+
+    def setup(self) -> None:
+        """Initialise the subclass's own state (called at the end of ``__init__``)."""
+
+    def subscribe(self) -> None:
+        """Declare the daemon's subscriptions (before its liveliness token)."""
+
+    async def work(self, halt: asyncio.Event) -> None:
+        """Do the daemon's work until ``halt`` is set (or the work is done)."""
+        raise NotImplementedError
+
+    def halt(self, reason: str) -> None:
+        """Called once when the daemon is to stop: a signal, or a bug in a handler."""
+
+    def stats_extras(self) -> Mapping[str, Any]:
+        """Extra fields of this daemon's stats reports."""
+        return {}
+
+    def ready_message(self) -> str:
+        """The INFO line logged once the daemon is ready."""
+        return f"{self.service} {self.node} ready"
+
+    # -- Service
+
+    async def startup(self) -> None:
+        await self.shell.open()
+        self.subscribe()
+        self.shell.announce()
+        if self.periodic_stats:
+            self.shell.start_stats()
+        self.ready = True
+        self.log.info("%s", self.ready_message())
+
+    async def run(self, stop: asyncio.Event) -> None:
+        """:meth:`work` until ``stop``; then raise ``ServiceExit`` if a handler failed."""
+        halted = asyncio.Event()
+
+        async def forward() -> None:
+            await wait_any(stop, self.shell.faulted)
+            halted.set()
+            self.halt(
+                "stopped by a signal" if self.shell.fault is None else "hit an internal error"
+            )
+
+        forwarder = asyncio.ensure_future(forward())
+        try:
+            await self.work(halted)
+        finally:
+            forwarder.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await forwarder
+        self.shell.raise_fault()
+
+    async def shutdown(self) -> None:
+        await self.shell.close()
+        if self.ready:
+            self.log.info("%s %s stopped", self.service, self.node)
+
+
+class ActorDaemon(DaemonBase[C]):
+    """A vehicle or RSU daemon: follows the monitor's runs (see the module docstring).
+
+    Subclasses set ``role`` (``"vehicle"`` or ``"RSU"``: which of the scenario's ids
+    their ``node_id`` is), implement :meth:`takes_part` and :meth:`episode`, and
+    declare their V2X subscriptions in :meth:`subscribe_v2x`; they may override
+    :meth:`on_episode_end` (the RSU sends its terminations there).
+    """
+
+    @classmethod
+    def node_ids(cls, scenario: Scenario) -> Collection[str]:
+        if cls.role == "vehicle":
+            return [v.id for v in scenario.vehicles]
+        return [r.id for r in scenario.rsus]
+
+    def _prepare(self) -> None:
         self.active: StartRun | None = None
         self.seen_runs: set[str] = set()
         self.alive: set[str] = set()
@@ -483,9 +716,8 @@ class ActorDaemon:
 
     # -- hooks
 
-    def subscribe(self) -> None:
-        """Declare the daemon's V2X subscriptions."""
-        raise NotImplementedError
+    def subscribe_v2x(self) -> None:
+        """Declare the daemon's V2X (and other plumbing) subscriptions."""
 
     def takes_part(self, start: StartRun) -> bool:
         """Whether this daemon is an actor of ``start``."""
@@ -498,36 +730,47 @@ class ActorDaemon:
     async def on_episode_end(self, start: StartRun, clock: RunClock) -> None:
         """Called after the episode, before the final stats report (still on the run clock)."""
 
-    # -- Service
+    # -- DaemonBase
 
-    async def startup(self) -> None:
-        await self.shell.open()
+    def subscribe(self) -> None:
         self.shell.subscribe_plumbing(control_key(prefix=self.prefix), self._on_control)
-        self.shell.transport.watch_liveliness(all_alive(prefix=self.prefix), self._on_liveliness)
-        self.subscribe()
-        self.shell.announce()
-        self.shell.start_stats()
-        self.log.info("%s %s ready, waiting for a run", self.service, self.node)
+        self.shell.watch_alive(self._on_alive)
+        self.subscribe_v2x()
 
-    async def run(self, stop: asyncio.Event) -> None:
-        stopper = asyncio.ensure_future(self._forward_stop(stop))
-        try:
-            while not stop.is_set():
-                self._wake.clear()
-                start, self._pending = self._pending, None
-                if start is None:
-                    await wait_any(self._wake, stop)
-                    continue
-                await self._run_episode(start)
-        finally:
-            stopper.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await stopper
+    def ready_message(self) -> str:
+        return f"{self.service} {self.node} ready, waiting for a run"
 
-    async def _forward_stop(self, stop: asyncio.Event) -> None:
-        await stop.wait()
-        self._end("stopped by signal")
+    def halt(self, reason: str) -> None:
+        self._end(reason)
         self._wake.set()
+
+    async def work(self, halt: asyncio.Event) -> None:
+        while not halt.is_set():
+            self._wake.clear()
+            start, self._pending = self._pending, None
+            if start is None:
+                await wait_any(self._wake, halt)
+                continue
+            await self._run_episode(start)
+
+    async def ticks(
+        self, start: StartRun, clock: RunClock, halt: asyncio.Event, hz: float, first: int = 0
+    ) -> AsyncIterator[tuple[int, float]]:
+        """Steps ``first, first + 1, ...`` at ``hz`` on the run clock: each (step, run time
+        [s]) once that time has come. Ends when ``halt`` is set, or past ``max_sim_s`` +
+        :data:`END_MARGIN_S` (the monitor is gone: the run is ended)."""
+        dt = 1.0 / hz
+        limit = start.max_sim_s + END_MARGIN_S
+        step = first
+        while True:
+            now = step * dt
+            if not await sleep_until(clock, now, halt):
+                return
+            if now > limit:
+                self._end(f"run time passed max_sim_s ({start.max_sim_s:g} s)")
+                return
+            yield step, now
+            step += 1
 
     async def _run_episode(self, start: StartRun) -> None:
         self._halt.clear()
@@ -557,10 +800,6 @@ class ActorDaemon:
                 self.active = None
                 await self.shell.end_run(DRAIN_S)
                 self.runs_done += 1
-
-    async def shutdown(self) -> None:
-        await self.shell.close()
-        self.log.info("%s %s stopped", self.service, self.node)
 
     # -- control
 
@@ -604,11 +843,7 @@ class ActorDaemon:
         self._pending = start
         self._wake.set()
 
-    def _on_liveliness(self, key: str, alive: bool) -> None:
-        try:
-            node = node_of_alive_key(key, prefix=self.prefix)
-        except keys.BadKey:
-            return
+    def _on_alive(self, node: str, alive: bool) -> None:
         if alive:
             self.alive.add(node)
             return
@@ -618,28 +853,85 @@ class ActorDaemon:
             self._end("monitor lost")
 
 
-# --------------------------------------------------------------------------- CLI helpers
+# --------------------------------------------------------------------------- CLI
 
-C = TypeVar("C", bound=CommonDaemonConfig)
-
-
-def load_daemon_config(
-    model: type[C], args: argparse.Namespace, extra: Mapping[str, object] | None = None
-) -> C:
-    """The daemon's config: TOML ``--config``, ``CROSSPATH_*`` env, ``--set`` and the common
-    flags, then ``extra`` (the command's own flags, which win). Raises ``ConfigError``."""
-    overrides = overrides_from_args(args)
-    overrides.update(extra or {})
-    path: Path | None = getattr(args, "config", None)
-    return load_config(model, path, overrides, os.environ)
+D = TypeVar("D", bound=Service)
 
 
-def load_daemon_scenario(path: Path) -> Scenario:
-    """The scenario file; ``ConfigError`` on field ``scenario`` when it is unusable."""
+def add_daemon_arguments(
+    parser: argparse.ArgumentParser, title: str, id_metavar: str | None = None
+) -> argparse._ArgumentGroup:
+    """The common daemon options, and a group ``title`` with ``--scenario`` (and ``--id``
+    when ``id_metavar`` names what the node id is); the group, for the command's own."""
+    add_common_arguments(parser)
+    group = parser.add_argument_group(title)
+    group.add_argument("--scenario", type=Path, metavar="FILE", help="TOML file or packaged name")
+    if id_metavar is not None:
+        group.add_argument("--id", dest="node_id", metavar=id_metavar, help="its id (node_id)")
+    return group
+
+
+def load_daemon_scenario(path: str | Path) -> Scenario:
+    """The scenario (a file, or a packaged name); ``ConfigError`` on field ``scenario``
+    when it is unusable."""
     try:
         return load_scenario(path)
     except ScenarioError as exc:
         raise ConfigError([("scenario", str(exc))]) from None
+
+
+class DaemonCommand(Generic[C, D]):
+    """A daemon's command line: ``model`` its config, ``build`` its service, ``flags`` which
+    command-line options set which config fields (dotted paths)."""
+
+    def __init__(
+        self,
+        command: str,
+        model: type[C],
+        build: Callable[[C, Scenario], D],
+        flags: Mapping[str, str],
+    ) -> None:
+        self.command = command
+        self.model = model
+        self.build = build
+        self.flags = dict(flags)
+
+    def load(self, args: argparse.Namespace) -> tuple[C, Scenario]:
+        """Config and scenario: TOML ``--config``, ``CROSSPATH_*`` env, ``--set`` and the
+        common flags, then this command's flags (which win). Raises ``ConfigError``."""
+        overrides = overrides_from_args(args)
+        for flag, name in self.flags.items():
+            value = getattr(args, flag, None)
+            if value is not None:
+                overrides[name] = str(value) if isinstance(value, Path) else value
+        path: Path | None = getattr(args, "config", None)
+        config = load_config(self.model, path, overrides, os.environ)
+        scenario: str | Path | None = getattr(config, "scenario", None)
+        if scenario is None:
+            raise ConfigError([("scenario", "a daemon needs a scenario")])
+        return config, load_daemon_scenario(scenario)
+
+    def serve(self, args: argparse.Namespace) -> tuple[int, D | None]:
+        """Load, build and run the daemon until it stops; its exit status and service
+        (None after a configuration error, reported in one line per problem: status 2)."""
+        try:
+            config, scenario = self.load(args)
+            service = self.build(config, scenario)
+        except ConfigError as exc:
+            return exit_on_config_error(self.command, exc), None
+        return run_daemon(config, service), service
+
+    def run(self, args: argparse.Namespace) -> int:
+        """:meth:`serve`'s exit status."""
+        return self.serve(args)[0]
+
+    def main(
+        self, configure: Callable[[argparse.ArgumentParser], None], argv: list[str] | None = None
+    ) -> int:
+        """The command on its own (``python -m``), its options from ``configure``."""
+        parser = argparse.ArgumentParser(prog=f"crosspath {self.command}")
+        configure(parser)
+        return self.run(parser.parse_args(argv))
 
 
 def run_daemon(config: CommonDaemonConfig, service: Service) -> int:

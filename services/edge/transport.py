@@ -41,6 +41,7 @@ import asyncio
 import itertools
 import json
 import logging
+import re
 import threading
 from collections.abc import Callable
 from typing import Any, Final, Protocol
@@ -53,6 +54,7 @@ from services.edge.settings import ZenohSettings
 __all__ = [
     "RELIABLE_QOS",
     "V2X_QOS",
+    "EndpointError",
     "Handler",
     "LivelinessHandler",
     "MemoryBus",
@@ -60,14 +62,17 @@ __all__ = [
     "Qos",
     "Subscription",
     "Transport",
+    "TransportConfigError",
     "TransportError",
     "ZenohTransport",
+    "diagnose_open_error",
     "init_zenoh_logging",
     "keyexpr_matches",
     "qos_for",
     "qos_for_key",
     "validate_key",
     "zenoh_config",
+    "zenoh_reason",
 ]
 
 logger = logging.getLogger("crosspath.transport")
@@ -81,6 +86,23 @@ LivelinessHandler = Callable[[str, bool], None]
 
 class TransportError(RuntimeError):
     """The transport cannot do what was asked (not open, closed, Zenoh refused)."""
+
+
+class TransportConfigError(TransportError):
+    """The settings cannot work as given: an invalid Zenoh option or endpoint, an address
+    in use or not on this host. Trying again with the same settings does not help."""
+
+
+class EndpointError(TransportConfigError):
+    """One endpoint cannot be opened: ``role`` (``listen`` or ``connect``), ``endpoint``
+    (as configured) and Zenoh's ``reason``, without its source locations."""
+
+    def __init__(self, role: str, endpoint: str, reason: str) -> None:
+        verb = "listen on" if role == "listen" else "connect to"
+        super().__init__(f"cannot {verb} {endpoint}: {reason}")
+        self.role = role
+        self.endpoint = endpoint
+        self.reason = reason
 
 
 V2X_QOS: Final = Qos(reliable=False, express=True, drop=True)
@@ -240,8 +262,70 @@ def zenoh_config(settings: ZenohSettings) -> zenoh.Config:
         for path, value in settings.options.items():
             config.insert_json5(path, json.dumps(value))
     except zenoh.ZError as exc:
-        raise TransportError(f"invalid Zenoh configuration: {exc}") from None
+        raise TransportConfigError(f"invalid Zenoh configuration: {zenoh_reason(exc)}") from None
     return config
+
+
+_RUST_LOCATION: Final = re.compile(r"\s+at \S+\.rs:\d+\.?")
+_INNERMOST: Final = re.compile(r"\[([^\[\]]*)\]")
+_ADDRESS_PREFIX: Final = re.compile(r"^\S+:\d+: ")
+
+
+def zenoh_reason(error: BaseException) -> str:
+    """Zenoh's error text as one short line: without its Rust source locations and, when
+    it nests the OS error in brackets, that innermost error alone (``Address already in
+    use (os error 98)`` rather than three lines about listeners)."""
+    text = _RUST_LOCATION.sub("", str(error)).strip()
+    inner = [part for part in _INNERMOST.findall(text) if "os error" in part]
+    if inner:
+        text = _ADDRESS_PREFIX.sub("", inner[-1].strip())
+    return " ".join(text.split()).rstrip(".!") or type(error).__name__
+
+
+def _configured_endpoints(config: zenoh.Config, role: str) -> list[str]:
+    """The ``role`` endpoints of a built configuration (a plain list only)."""
+    try:
+        value = json.loads(config.get_json(f"{role}/endpoints"))
+    except (zenoh.ZError, ValueError):
+        return []
+    return [e for e in value if isinstance(e, str)] if isinstance(value, list) else []
+
+
+def _probe(role: str, endpoint: str) -> str | None:
+    """Why Zenoh cannot open a session with just ``endpoint`` (as ``role``), or None.
+
+    A peer session that only listens on (or only connects to) one endpoint, without
+    scouting: it fails at once for an unknown protocol, a bad address or an address in
+    use, and opens for an endpoint that merely does not answer yet.
+    """
+    config = zenoh.Config()
+    config.insert_json5("mode", json.dumps("peer"))
+    config.insert_json5("scouting/multicast/enabled", "false")
+    config.insert_json5("listen/endpoints", json.dumps([endpoint] if role == "listen" else []))
+    config.insert_json5("connect/endpoints", json.dumps([endpoint] if role == "connect" else []))
+    try:
+        session = zenoh.open(config)
+    except zenoh.ZError as exc:
+        return zenoh_reason(exc)
+    closable: _Closable = session
+    closable.close()
+    return None
+
+
+def diagnose_open_error(config: zenoh.Config, error: zenoh.ZError) -> TransportError:
+    """The error to raise when ``zenoh.open(config)`` failed with ``error``.
+
+    Zenoh's message often does not say which endpoint failed, so each configured
+    endpoint is tried alone (:func:`_probe`): the first that fails on its own gives
+    an :class:`EndpointError`. When none does (a client that reaches none of its
+    routers, which may come up later), a plain :class:`TransportError`.
+    """
+    for role in ("listen", "connect"):
+        for endpoint in _configured_endpoints(config, role):
+            reason = _probe(role, endpoint)
+            if reason is not None:
+                return EndpointError(role, endpoint, reason)
+    return TransportError(f"cannot open Zenoh session: {zenoh_reason(error)}")
 
 
 def init_zenoh_logging(level: str = "warn") -> None:
@@ -296,6 +380,8 @@ class ZenohTransport:
         self._handles: list[_ZenohHandle] = []
         self.dropped = 0
         """Datagrams received but not delivered (event loop closed, copy failed)."""
+        self.connect_endpoints: list[str] = []
+        """The endpoints this session connects to (settings and config file), once open."""
 
     # -- life
 
@@ -307,10 +393,11 @@ class ZenohTransport:
                 return
             self._loop = _bind_loop(self._loop)
             config = zenoh_config(self.settings)
+            self.connect_endpoints = _configured_endpoints(config, "connect")
             try:
                 self._session = zenoh.open(config)
             except zenoh.ZError as exc:
-                raise TransportError(f"cannot open Zenoh session: {exc}") from None
+                raise diagnose_open_error(config, exc) from None
             logger.info(
                 "zenoh session %s open (mode %s, listen %s, connect %s)",
                 self._session.zid(),

@@ -8,9 +8,12 @@ differ only by what the column changes.
 :func:`run_trials` runs trials either with the in-process harness in a process
 pool (:func:`run_in_process`, deterministic per seed) or with real daemons one
 after another (:class:`DaemonRunner`), showing a rich progress bar when attached to
-a terminal and one plain line per finished trial otherwise. A trial's outcome is
-the run result of DESIGN.md plus, when asked for, its per-tick trace (rows of
-``services.sim.harness.TRACE_FIELDS``).
+a terminal and one plain line per finished trial otherwise. Both call the Python
+API (``services.api.simulate`` / ``run_daemons``), never the ``crosspath``
+command. A trial's outcome is the typed run result
+(``services.model.results.RunResult``, without its trace) plus, when asked for,
+its per-tick trace (rows of ``services.sim.harness.TRACE_FIELDS``; from the
+daemons, ``accel`` is derived from the speed and ``detail`` is empty).
 
 Everything else here is small and reusable: summaries of per-trial numbers,
 markdown tables, JSON output that can be compared across runs once wall-clock
@@ -26,9 +29,7 @@ import logging
 import math
 import multiprocessing
 import os
-import subprocess
 import sys
-import tempfile
 import time
 import traceback
 from collections.abc import Iterator, Mapping, Sequence
@@ -50,13 +51,14 @@ from rich.progress import (
     TimeRemainingColumn,
 )
 
+from services.api import run_daemons, simulate
+from services.model.results import RunResult
 from services.model.scenario import Scenario, load_scenario
 from services.model.types import Policy, RunMode
-from services.sim.harness import TRACE_FIELDS, SimOptions, Simulation
+from services.sim.harness import write_trace_csv
 from services.sim.membus import ChannelModel
 
 __all__ = [
-    "PROJECT_ROOT",
     "VEHICLE_COLORS",
     "WALL_CLOCK_KEYS",
     "Column",
@@ -95,9 +97,6 @@ else in an in-process result is reproduced exactly by the same seed."""
 
 VEHICLE_COLORS = ("tab:green", "tab:orange", "tab:blue", "tab:red", "tab:purple", "tab:brown")
 """Car colours in figures, in vehicle order (the paper draws car A green, car B orange)."""
-
-PROJECT_ROOT = Path(__file__).resolve().parents[3]
-"""The checkout holding ``services/`` (for running the CLI as a subprocess)."""
 
 
 class ExperimentError(RuntimeError):
@@ -149,7 +148,7 @@ class TrialOutcome:
     says why), the trace rows if recorded, and the wall time it took [s]."""
 
     trial: Trial
-    result: dict[str, Any] | None
+    result: RunResult | None
     trace: tuple[TraceRow, ...] | None = None
     error: str | None = None
     wall_s: float = 0.0
@@ -192,24 +191,24 @@ def _scenario(path: str) -> Scenario:
 
 
 def run_in_process(trial: Trial) -> TrialOutcome:
-    """One trial with the in-process harness (``services.sim.harness``).
+    """One trial with the in-process harness (``services.api.simulate``).
 
     Exceptions become the outcome's ``error`` so that one failing trial does not
     hide the others' results.
     """
     t0 = time.perf_counter()
+    col = trial.column
     try:
-        sim = Simulation(
+        result = simulate(
             _scenario(trial.scenario),
-            SimOptions(
-                mode=trial.column.mode,
-                policy=trial.column.policy,
-                seed=trial.seed,
-                channel=trial.column.channel(),
-                trace=trial.trace,
-            ),
+            mode=col.mode,
+            policy=col.policy,
+            seed=trial.seed,
+            loss=col.loss,
+            latency_ms=col.latency_s * 1000.0,
+            jitter_ms=col.jitter_s * 1000.0,
+            trace=trial.trace,
         )
-        result = sim.run()
     except Exception as exc:  # a trial's failure is reported, not raised in the worker
         return TrialOutcome(
             trial,
@@ -217,8 +216,13 @@ def run_in_process(trial: Trial) -> TrialOutcome:
             error=_describe(exc),
             wall_s=time.perf_counter() - t0,
         )
-    trace = tuple(sim.trace_rows) if trial.trace else None
-    return TrialOutcome(trial, result, trace, None, time.perf_counter() - t0)
+    return _outcome(trial, result, time.perf_counter() - t0)
+
+
+def _outcome(trial: Trial, result: RunResult, wall_s: float) -> TrialOutcome:
+    """The outcome of a finished trial: the result without its trace, the trace beside."""
+    trace = tuple(result.trace) if trial.trace and result.trace is not None else None
+    return TrialOutcome(trial, result.without_trace(), trace, None, wall_s)
 
 
 def _describe(exc: BaseException) -> str:
@@ -230,96 +234,40 @@ def _describe(exc: BaseException) -> str:
 
 @dataclass(frozen=True, slots=True)
 class DaemonRunner:
-    """One trial with real daemons (one OS process per actor over Zenoh).
+    """One trial with real daemons (one OS process per actor over Zenoh), through
+    ``services.api.run_daemons`` (what ``crosspath up`` runs), in this process.
 
-    Runs the stable CLI contract ``crosspath up SCENARIO --mode M --policy P --seed N
-    --json OUT`` as a subprocess (the launcher has no call that returns a result
-    in-process: it owns signal handlers and child process groups, which belong in
-    a process of their own). ``speed`` is passed on as ``--speed`` (run seconds per
-    wall second) when set; ``run_dir_root`` gets one ``--run-dir`` per trial
-    (``{column}-seed{N}``, the daemons' logs) when ``up`` accepts it; ``timeout_s``
-    bounds one run in wall seconds. Daemon runs carry no per-tick trace unless
-    ``up`` offers ``--trace``.
+    ``speed`` is the run seconds per wall second (default 1); ``run_dir_root`` gets
+    one run directory per trial (``{column}-seed{N}``, the daemons' logs; default a
+    fresh ``results/up/...``); ``timeout_s`` bounds one run in wall seconds. The trace,
+    when the trial asks for one, is the monitor's record of every car's truth.
     """
 
     speed: float | None = None
     timeout_s: float = 600.0
     run_dir_root: str | None = None
-    extra_args: tuple[str, ...] = ()
 
     def __call__(self, trial: Trial) -> TrialOutcome:
         t0 = time.perf_counter()
-        try:
-            result, trace = self._run_cli(trial)
-        except Exception as exc:
-            return TrialOutcome(trial, None, error=_describe(exc), wall_s=time.perf_counter() - t0)
-        return TrialOutcome(trial, result, trace, None, time.perf_counter() - t0)
-
-    def _run_cli(self, trial: Trial) -> tuple[dict[str, Any], tuple[TraceRow, ...] | None]:
-        with tempfile.TemporaryDirectory(prefix="crosspath-exp-") as tmp:
-            out = Path(tmp) / "result.json"
-            trace_path = Path(tmp) / "trace.csv"
-            cmd = [
-                sys.executable,
-                "-m",
-                "services.cli.main",
-                "up",
-                trial.scenario,
-                "--mode",
-                str(trial.column.mode),
-                "--policy",
-                str(trial.column.policy),
-                "--seed",
-                str(trial.seed),
-                "--json",
-                str(out),
-            ]
-            if self.speed is not None:
-                cmd += ["--speed", repr(self.speed)]
-            if self.run_dir_root is not None and _up_supports("--run-dir"):
-                run_dir = Path(self.run_dir_root) / f"{trial.column.key}-seed{trial.seed}"
-                cmd += ["--run-dir", str(run_dir)]
-            want_trace = trial.trace and _up_supports("--trace")
-            if want_trace:
-                cmd += ["--trace", str(trace_path)]
-            cmd += list(self.extra_args)
-            env = dict(os.environ)
-            env["PYTHONPATH"] = os.pathsep.join(
-                p for p in (str(PROJECT_ROOT), env.get("PYTHONPATH", "")) if p
-            )
-            proc = subprocess.run(
-                cmd,
-                capture_output=True,
-                text=True,
-                timeout=self.timeout_s,
-                env=env,
-                check=False,
-            )
-            if proc.returncode != 0 or not out.exists():
-                tail = (proc.stderr or proc.stdout).strip().splitlines()[-3:]
-                raise ExperimentError(
-                    f"crosspath up exited with {proc.returncode}: " + " | ".join(tail)
-                )
-            result: dict[str, Any] = json.loads(out.read_text())
-            trace = read_trace_csv(trace_path) if want_trace and trace_path.exists() else None
-            return result, trace
-
-
-@lru_cache(maxsize=4)
-def _up_supports(option: str) -> bool:
-    """Whether ``crosspath up`` accepts ``option`` (asked once, from its help)."""
-    try:
-        proc = subprocess.run(
-            [sys.executable, "-m", "services.cli.main", "up", "--help"],
-            capture_output=True,
-            text=True,
-            timeout=60,
-            cwd=PROJECT_ROOT,
-            check=False,
+        run_dir = (
+            None
+            if self.run_dir_root is None
+            else Path(self.run_dir_root) / f"{trial.column.key}-seed{trial.seed}"
         )
-    except (OSError, subprocess.TimeoutExpired):
-        return False
-    return proc.returncode == 0 and option in proc.stdout
+        try:
+            result = run_daemons(
+                trial.scenario,
+                mode=trial.column.mode,
+                policy=trial.column.policy,
+                seed=trial.seed,
+                speed=self.speed if self.speed is not None else 1.0,
+                timeout=self.timeout_s,
+                run_dir=run_dir,
+                trace=trial.trace,
+            )
+        except Exception as exc:  # one failed trial is reported; Ctrl-C is not swallowed
+            return TrialOutcome(trial, None, error=_describe(exc), wall_s=time.perf_counter() - t0)
+        return _outcome(trial, result, time.perf_counter() - t0)
 
 
 # --------------------------------------------------------------------------- progress
@@ -334,10 +282,10 @@ def _outcome_line(outcome: TrialOutcome) -> str:
     head = f"{t.column.key} seed {t.seed}"
     if outcome.result is None:
         return f"{head}: FAILED {outcome.error}"
-    mean = outcome.result.get("mean_passing_time_s")
+    mean = outcome.result.mean_passing_time_s
     mean_s = "-" if mean is None else f"{mean:.2f} s"
     return (
-        f"{head}: mean passing {mean_s}, collisions {outcome.result.get('collisions')}"
+        f"{head}: mean passing {mean_s}, collisions {outcome.result.collisions}"
         f" ({outcome.wall_s:.2f} s)"
     )
 
@@ -564,15 +512,6 @@ def split_trace(rows: Sequence[TraceRow]) -> dict[str, VehicleTrace]:
             mode=tuple(str(r[9]) for r in rs),
         )
     return out
-
-
-def write_trace_csv(path: Path, rows: Sequence[TraceRow]) -> None:
-    """A trace as CSV with the ``TRACE_FIELDS`` header (as ``crosspath sim --trace``)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with path.open("w", newline="") as fh:
-        w = csv.writer(fh)
-        w.writerow(TRACE_FIELDS)
-        w.writerows(rows)
 
 
 def read_trace_csv(path: Path) -> tuple[TraceRow, ...]:

@@ -1,6 +1,7 @@
 """``crosspath experiment loss-sweep``: passing time and safety against packet loss, in the lab.
 
-Runs the ``rsu`` mode at each loss rate (default 0, 10, 30, 50, 80, 100 %) for
+Runs the ``rsu`` mode at each loss rate (a fraction 0..1, as every probability in
+crosspath; default 0, 0.1, 0.3, 0.5, 0.8, 1) for
 N trials in the network lab (``services.supervise.lab.runner.run_lab``: one
 network namespace per daemon, ingress loss on every car's and RSU's air
 interface), trial ``i`` with seed ``base_seed + i`` at every loss, one run after
@@ -39,6 +40,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Final
 
+from services.edge.args import (
+    float_at_least,
+    fraction,
+    non_negative_int,
+    output_dir,
+    positive_float,
+    positive_int,
+    run_speed,
+)
 from services.experiments.common import (
     Column,
     Stopwatch,
@@ -55,6 +65,7 @@ from services.experiments.common import (
     write_json,
 )
 from services.experiments.paper import DEFAULT_SCENARIO
+from services.model.results import RunResult
 from services.model.scenario import ScenarioError, load_scenario
 from services.model.types import Policy, RunMode
 
@@ -72,39 +83,38 @@ __all__ = [
     "run_sweep",
 ]
 
-DEFAULT_LOSSES: Final = (0.0, 10.0, 30.0, 50.0, 80.0, 100.0)
-"""Loss rates swept by default [%]."""
+DEFAULT_LOSSES: Final = (0.0, 0.1, 0.3, 0.5, 0.8, 1.0)
+"""Loss rates swept by default (fractions 0..1)."""
 DEFAULT_TRIALS: Final = 3
 DEFAULT_OUT: Final = Path("results") / "loss-sweep"
 DEFAULT_SPEED: Final = 1.0
 
 
 def parse_losses(text: str) -> tuple[float, ...]:
-    """``"0,10,30"`` → ``(0.0, 10.0, 30.0)``; ``ValueError`` outside 0..100 or repeated."""
-    try:
-        values = tuple(float(v.strip().rstrip("%")) for v in text.split(",") if v.strip())
-    except ValueError:
-        raise ValueError(f"losses must be comma-separated percentages, got {text!r}") from None
-    if not values:
+    """``"0,0.1,30%"`` → ``(0.0, 0.1, 0.3)``: fractions 0..1 (an explicit ``%`` converts);
+    ``ValueError`` outside 0..1, for a bare number above 1, or repeated."""
+    items = [v.strip() for v in text.split(",") if v.strip()]
+    if not items:
         raise ValueError("no loss rate given")
-    bad = [v for v in values if not (math.isfinite(v) and 0.0 <= v <= 100.0)]
-    if bad:
-        raise ValueError(f"loss rates must be within 0..100 %, got {bad}")
+    try:
+        values = tuple(fraction(v) for v in items)
+    except argparse.ArgumentTypeError as exc:
+        raise ValueError(f"every loss rate {exc}") from None
     if len(set(values)) != len(values):
         raise ValueError(f"loss rates repeat: {text!r}")
     return values
 
 
 def loss_columns(losses: Sequence[float], policy: Policy = Policy.PAPER) -> list[Column]:
-    """One ``rsu``-mode column per loss rate (``Column.loss`` is a probability)."""
-    return [Column(f"loss{p:g}", f"{p:g} %", RunMode.RSU, policy, loss=p / 100.0) for p in losses]
+    """One ``rsu``-mode column per loss rate (a probability, as ``Column.loss``)."""
+    return [Column(f"loss{p:g}", f"loss {p:g}", RunMode.RSU, policy, loss=p) for p in losses]
 
 
 @dataclass(frozen=True, slots=True)
 class LabRunner:
     """Runs one trial in the network lab (a :class:`~services.experiments.common.Runner`).
 
-    The column's loss (probability) becomes the lab's ingress loss in percent;
+    The column's loss (a probability) becomes the lab's ingress loss;
     ``burst`` and ``rate_mbit`` apply to every trial. Each trial's daemon logs go
     to ``run_dir_root/<column>-seed<N>``. Ctrl-C is not swallowed: the lab is
     torn down and the sweep stops.
@@ -131,7 +141,7 @@ class LabRunner:
                 trial.column.mode,
                 trial.column.policy,
                 trial.seed,
-                round(trial.column.loss * 100.0, 6),
+                trial.column.loss,
                 burst=self.burst if trial.column.loss > 0 else None,
                 rate_mbit=self.rate_mbit,
                 speed=self.speed,
@@ -143,38 +153,33 @@ class LabRunner:
                 trial, None, error=f"{type(exc).__name__}: {exc}", wall_s=time.perf_counter() - t0
             )
         wall = time.perf_counter() - t0
-        if result.get("error"):
-            return TrialOutcome(trial, None, error=str(result["error"]), wall_s=wall)
+        if result.error is not None:
+            return TrialOutcome(trial, None, error=result.error, wall_s=wall)
         return TrialOutcome(trial, result, None, None, wall)
 
 
 # --------------------------------------------------------------------------- aggregates
 
 
-def _cars(result: Mapping[str, Any]) -> list[str]:
-    return list(result.get("vehicles", {}))
-
-
-def _lab_numbers(result: Mapping[str, Any]) -> dict[str, float | None]:
+def _lab_numbers(result: RunResult) -> dict[str, float | None]:
     """Per-run lab figures: fp delivery, measured loss, coordinated time, on-air rates."""
-    network = result.get("network") or {}
-    fp = network.get("fp") if isinstance(network, Mapping) else None
-    lab = result.get("lab") or {}
+    fp = None if result.network is None else result.network.stream("fp")
+    lab = result.lab or {}
     air: Mapping[str, Any] = lab.get("air") or {}
     radio = [n for n in lab.get("faults", {}).get("nodes", []) if n in air]
     seen = sum(int(air[n].get("loss_seen", 0)) for n in radio)
     dropped = sum(int(air[n].get("loss_dropped", 0)) for n in radio)
-    cars = [c for c in _cars(result) if c in air]
+    cars = [c for c in result.vehicles if c in air]
     modes: Mapping[str, Any] = lab.get("modes") or {}
 
     def mean(values: list[float]) -> float | None:
         return sum(values) / len(values) if values else None
 
     return {
-        "fp_delivery": None if not isinstance(fp, Mapping) else fp.get("delivery_ratio"),
-        "measured_loss_pct": 100.0 * dropped / seen if seen else None,
+        "fp_delivery": None if fp is None else fp.delivery_ratio,
+        "measured_loss": dropped / seen if seen else None,
         "coordinated_s": mean(
-            [float(modes[c]["coordinated_s"]) for c in _cars(result) if c in modes]
+            [float(modes[c]["coordinated_s"]) for c in result.vehicles if c in modes]
         ),
         "air_tx_kbps": mean([float(air[c]["tx_kbps"]) for c in cars if air[c].get("tx_kbps")]),
         "v2x_tx_kbps": mean(
@@ -183,16 +188,16 @@ def _lab_numbers(result: Mapping[str, Any]) -> dict[str, float | None]:
     }
 
 
-def aggregate(results: Sequence[Mapping[str, Any]], lab: bool) -> dict[str, Any]:
+def aggregate(results: Sequence[RunResult], lab: bool) -> dict[str, Any]:
     """Aggregates of one loss rate's runs (see the module docstring)."""
-    pets = [r.get("min_pet_s") for r in results]
-    gaps = [r.get("min_gap_m") for r in results]
+    pets = [r.min_pet_s for r in results]
+    gaps = [r.min_gap_m for r in results]
     out: dict[str, Any] = {
         "runs": len(results),
-        "average_passing_time_s": summarize([r.get("mean_passing_time_s") for r in results]),
-        "collisions": sum(int(r.get("collisions", 0)) for r in results),
-        "runs_with_collision": sum(1 for r in results if int(r.get("collisions", 0)) > 0),
-        "all_finished": sum(1 for r in results if r.get("all_finished")),
+        "average_passing_time_s": summarize([r.mean_passing_time_s for r in results]),
+        "collisions": sum(r.collisions for r in results),
+        "runs_with_collision": sum(1 for r in results if r.collisions > 0),
+        "all_finished": sum(1 for r in results if r.all_finished),
         "min_pet_s": min((p for p in pets if p is not None), default=None),
         "mean_min_pet_s": summarize(pets)["mean"],
         "min_gap_m": min((g for g in gaps if g is not None), default=None),
@@ -201,7 +206,7 @@ def aggregate(results: Sequence[Mapping[str, Any]], lab: bool) -> dict[str, Any]
         numbers = [_lab_numbers(r) for r in results]
         for key in (
             "fp_delivery",
-            "measured_loss_pct",
+            "measured_loss",
             "coordinated_s",
             "air_tx_kbps",
             "v2x_tx_kbps",
@@ -242,7 +247,7 @@ def render_table(doc: Mapping[str, Any]) -> str:
                 fmt_num(a.get("min_pet_s")),
                 fmt_num(a.get("min_gap_m")),
                 fmt_num(a.get("fp_delivery"), digits=3),
-                fmt_num(a.get("measured_loss_pct"), "%", 1),
+                fmt_num(a.get("measured_loss"), digits=3),
                 fmt_num(a.get("coordinated_s"), digits=1),
                 fmt_num(a.get("air_tx_kbps"), digits=1),
                 fmt_num(a.get("v2x_tx_kbps"), digits=1),
@@ -374,8 +379,8 @@ def run_sweep(
         )
     errors = collect_errors(lab_outcomes) + collect_errors(sim_outcomes + ref_outcomes)
 
-    def by_column(outcomes: Sequence[TrialOutcome]) -> dict[str, list[dict[str, Any]]]:
-        runs: dict[str, list[dict[str, Any]]] = {c.key: [] for c in columns}
+    def by_column(outcomes: Sequence[TrialOutcome]) -> dict[str, list[RunResult]]:
+        runs: dict[str, list[RunResult]] = {c.key: [] for c in columns}
         for o in outcomes:
             if o.result is not None:
                 runs.setdefault(o.trial.column.key, []).append(o.result)
@@ -394,7 +399,7 @@ def run_sweep(
         "trials": trials,
         "base_seed": seed,
         "speed": speed,
-        "losses_pct": list(losses),
+        "losses": list(losses),
         "burst": burst,
         "rate_mbit": rate_mbit,
         "columns": [{"key": c.key, "title": c.title, "loss": c.loss} for c in columns],
@@ -405,9 +410,9 @@ def run_sweep(
         "standalone_reference": aggregate(ref_results, lab=False),
         "errors": errors,
         "runs": {
-            "lab": lab_runs,
-            "in_process": sim_runs,
-            "standalone_in_process": ref_results,
+            "lab": {k: [r.to_dict() for r in v] for k, v in lab_runs.items()},
+            "in_process": {k: [r.to_dict() for r in v] for k, v in sim_runs.items()},
+            "standalone_in_process": [r.to_dict() for r in ref_results],
         },
     }
     out.mkdir(parents=True, exist_ok=True)
@@ -427,55 +432,76 @@ def run_sweep(
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    """Options of ``crosspath experiment loss-sweep``."""
+    """Options of ``crosspath experiment loss-sweep``; bad values are refused while parsing."""
+
+    def loss_list(text: str) -> tuple[float, ...]:
+        try:
+            return parse_losses(text)
+        except ValueError as exc:
+            raise argparse.ArgumentTypeError(str(exc)) from None
+
+    parser.add_argument("--out", type=output_dir, default=DEFAULT_OUT, help="output directory")
     parser.add_argument(
-        "--out", type=Path, default=DEFAULT_OUT, help="output directory (results/loss-sweep)"
-    )
-    parser.add_argument(
-        "--trials", type=int, default=DEFAULT_TRIALS, help="trials per loss rate (default 3)"
+        "--trials", type=positive_int, default=DEFAULT_TRIALS, help="trials per loss rate"
     )
     parser.add_argument(
         "--losses",
+        type=loss_list,
         default=",".join(f"{v:g}" for v in DEFAULT_LOSSES),
-        help="loss rates in percent, comma-separated (default 0,10,30,50,80,100)",
+        help="loss rates, fractions 0..1 (or 30%%), comma-separated",
     )
     parser.add_argument(
         "--speed",
-        type=float,
+        type=run_speed,
         default=DEFAULT_SPEED,
-        help="run seconds per wall second of the lab runs (default 1; 2-4 for a quick look)",
+        help="run seconds per wall second of the lab runs (2-4 for a quick look)",
     )
     parser.add_argument(
-        "--seed", type=int, default=0, help="base seed: trial i uses seed + i (default 0)"
-    )
-    parser.add_argument("--policy", choices=[p.value for p in Policy], default=Policy.PAPER.value)
-    parser.add_argument(
-        "--scenario", type=Path, default=DEFAULT_SCENARIO, help="scenario file (TOML)"
+        "--seed", type=non_negative_int, default=0, help="base seed: trial i uses seed + i"
     )
     parser.add_argument(
-        "--burst", type=float, default=None, help="mean loss burst in packets (Gilbert model)"
+        "--policy",
+        choices=[p.value for p in Policy],
+        default=Policy.PAPER.value,
+        help="the RSU's velocity manager",
     )
     parser.add_argument(
-        "--rate", type=float, default=None, help="air rate limit of every car and RSU [Mbit/s]"
+        "--scenario", type=Path, default=DEFAULT_SCENARIO, help="TOML file or packaged name"
     )
     parser.add_argument(
-        "--timeout", type=float, default=None, help="wall s per run (default max_sim / speed + 60)"
+        "--burst",
+        type=float_at_least(1.0),
+        default=None,
+        help="mean loss burst in packets (Gilbert model); default: independent losses",
+    )
+    parser.add_argument(
+        "--rate",
+        type=positive_float,
+        default=None,
+        help="air rate limit of every car and RSU [Mbit/s]",
+    )
+    parser.add_argument(
+        "--timeout",
+        type=positive_float,
+        default=None,
+        help="wall s per run (default max_sim / speed + 60)",
     )
 
 
 def run(args: argparse.Namespace) -> int:
     """The sweep; 0 when every trial ran, 1 when some failed, 2 on bad arguments."""
+    from services.supervise.lab.faults import Loss
     from services.supervise.lab.netns import prerequisites
     from services.supervise.lab.runner import LabInterrupted
 
     name = "crosspath experiment loss-sweep"
-    try:
-        losses = parse_losses(args.losses)
+    losses: tuple[float, ...] = args.losses
+    try:  # an impossible loss model fails here, not in every trial
+        for loss in losses:
+            if loss > 0.0:
+                Loss(loss, args.burst)
     except ValueError as exc:
-        print(f"{name}: {exc}", file=sys.stderr)
-        return 2
-    if args.trials < 1 or args.seed < 0:
-        print(f"{name}: --trials must be >= 1 and --seed >= 0", file=sys.stderr)
+        print(f"{name}: --burst: {exc}", file=sys.stderr)
         return 2
     missing = prerequisites()
     if missing:

@@ -36,12 +36,13 @@ Decisions where the issue is silent:
   minimum gap and PET of any trial.
 - The paper's table gives car A first 6 times with the RSU while its text says
   4; we quote the table.
-- With ``--daemons`` trials run one after another through ``crosspath up`` (a
-  daemon run keeps wall-clock time, so parallel runs would compete for the CPU
-  and distort each other); the daemons' logs go to ``DIR/daemons/``. ``crosspath
-  up`` records no per-tick trace, so the speed profiles and the behaviour
-  analysis are left out (they come back by themselves if ``up`` gains
-  ``--trace``).
+- With ``--daemons`` trials run one after another with real daemons
+  (``services.api.run_daemons``, what ``crosspath up`` runs; a daemon run keeps
+  wall-clock time, so parallel runs would compete for the CPU and distort each
+  other); the daemons' logs go to ``DIR/daemons/``. Their per-tick trace is the
+  monitor's record of every car's reported truth (``accel`` derived from the
+  speed; no planner ``detail``, so the report does not say whom a car yielded
+  to), which feeds the speed profiles and the behaviour analysis as in-process.
 """
 
 from __future__ import annotations
@@ -58,8 +59,8 @@ from typing import Any
 
 import numpy as np
 
+from services.edge.args import non_negative_int, output_dir, positive_int, run_speed
 from services.experiments.common import (
-    PROJECT_ROOT,
     Column,
     DaemonRunner,
     ExperimentError,
@@ -81,6 +82,9 @@ from services.experiments.common import (
     write_json,
     write_trace_csv,
 )
+from services.model.catalog import default_scenario
+from services.model.limits import STOP_ARM_ABOVE_MPS, STOP_COUNT_BELOW_MPS
+from services.model.results import RunResult
 from services.model.scenario import Crossing, Scenario, ScenarioError, load_scenario
 from services.model.types import Policy, RunMode
 
@@ -106,7 +110,8 @@ __all__ = [
 
 log = logging.getLogger("crosspath.experiment")
 
-DEFAULT_SCENARIO = PROJECT_ROOT / "scenarios" / "paper-blind-intersection.toml"
+DEFAULT_SCENARIO = default_scenario()
+"""The packaged paper scenario (``services.model.catalog``), wherever crosspath is installed."""
 DEFAULT_OUT = Path("results") / "paper"
 DEFAULT_TRIALS = 10
 
@@ -118,10 +123,6 @@ PROFILE_RANGE_M = (-100.0, 50.0)
 
 PROFILE_BIN_M = 1.0
 """Bin width of the mean speed profile [m]."""
-
-STOPPED_MPS = 0.1
-ARMED_MPS = 1.0
-"""A stop: speed below ``STOPPED_MPS`` after having exceeded ``ARMED_MPS`` (as the metrics)."""
 
 REASONS = ("cruise", "caution", "yield", "coordinated", "emergency", "goal")
 """Planner reasons in the order reports list them (``services.vehicle.planner.Reason``)."""
@@ -222,22 +223,22 @@ def analyse_vehicle(
     ic = _first(reasons == "caution")
     ie = _first(reasons == "emergency")
 
-    # stops, counted as the metrics count them
+    # stops, counted as the metrics count them (thresholds in services.model.limits)
     stops: list[dict[str, Any]] = []
     armed = False
     start: int | None = None
     for i in range(tr.t.size):
         v = tr.speed[i]
         if start is None:
-            if v > ARMED_MPS:
+            if v > STOP_ARM_ABOVE_MPS:
                 armed = True
-            if armed and v < STOPPED_MPS and tr.s[i] < goal_s - goal_tolerance_m:
+            if armed and v < STOP_COUNT_BELOW_MPS and tr.s[i] < goal_s - goal_tolerance_m:
                 start = i
                 armed = False
-        elif v >= STOPPED_MPS:
+        elif v >= STOP_COUNT_BELOW_MPS:
             stops.append(_stop(tr, rel, crossing, start, i))
             start = None
-            armed = v > ARMED_MPS
+            armed = v > STOP_ARM_ABOVE_MPS
     if start is not None:
         stops.append(_stop(tr, rel, crossing, start, tr.t.size - 1))
 
@@ -376,16 +377,15 @@ def _reason_order(k: str) -> tuple[int, str]:
 def aggregate_column(
     runs: Sequence[Mapping[str, Any]], vehicles: Sequence[str], baseline_avg: float | None
 ) -> dict[str, Any]:
-    """Table I's numbers for one column from its per-trial run results."""
-    results = [r["result"] for r in runs]
-    first = {v: sum(1 for r in results if r["vehicles"][v]["first_through"]) for v in vehicles}
+    """Table I's numbers for one column from its per-trial runs (``result``: a run result
+    or its JSON form, ``behaviour``: :func:`analyse_trial` or None)."""
+    results = [_result(r["result"]) for r in runs]
+    first = {v: sum(1 for r in results if r.vehicles[v].first_through) for v in vehicles}
     first["none"] = sum(
-        1 for r in results if not any(r["vehicles"][v]["first_through"] for v in vehicles)
+        1 for r in results if not any(r.vehicles[v].first_through for v in vehicles)
     )
-    passing = {
-        v: summarize([r["vehicles"][v]["passing_time_s"] for r in results]) for v in vehicles
-    }
-    every = [r["vehicles"][v]["passing_time_s"] for r in results for v in vehicles]
+    passing = {v: summarize([r.vehicles[v].passing_time_s for r in results]) for v in vehicles}
+    every = [r.vehicles[v].passing_time_s for r in results for v in vehicles]
     avg = summarize(every)
     change = (
         None
@@ -398,18 +398,28 @@ def aggregate_column(
         "passing_time_s": passing,
         "average_passing_time_s": avg,
         "change_vs_standalone_pct": change,
-        "stops": {v: summarize([r["vehicles"][v]["stops"] for r in results]) for v in vehicles},
-        "collisions": sum(int(r["collisions"]) for r in results),
-        "trials_with_collision": sum(1 for r in results if r["collisions"]),
-        "min_gap_m": summarize([r["min_gap_m"] for r in results]),
-        "min_pet_s": summarize([r["min_pet_s"] for r in results]),
-        "all_finished_trials": sum(1 for r in results if r.get("all_finished")),
+        "stops": {v: summarize([r.vehicles[v].stops for r in results]) for v in vehicles},
+        "collisions": sum(r.collisions for r in results),
+        "trials_with_collision": sum(1 for r in results if r.collisions),
+        "min_gap_m": summarize([r.min_gap_m for r in results]),
+        "min_pet_s": summarize([r.min_pet_s for r in results]),
+        "all_finished_trials": sum(1 for r in results if r.all_finished),
     }
     traced = [r["behaviour"] for r in runs if r.get("behaviour") is not None]
     out["behaviour"] = (
         {v: aggregate_behaviour(traced, v) for v in vehicles} if len(traced) == len(runs) else None
     )
     return out
+
+
+def _result(value: RunResult | Mapping[str, Any]) -> RunResult:
+    """A run result, from the document's JSON form if need be."""
+    return value if isinstance(value, RunResult) else RunResult.model_validate(value)
+
+
+def _column_results(doc: Mapping[str, Any], key: str) -> list[RunResult]:
+    """The run results of one column of the document, in trial order."""
+    return [_result(r["result"]) for r in doc["runs"][key]]
 
 
 # --------------------------------------------------------------------------- table
@@ -592,14 +602,10 @@ def plot_passing_times(doc: Mapping[str, Any], path: Path, dpi: int = 110) -> No
     rng = np.random.default_rng(0)  # deterministic jitter
     paper_label_done = False
     for ci, col in enumerate(columns):
-        runs = doc["runs"][col.key]
+        results = _column_results(doc, col.key)
         for k, v in enumerate(vehicles):
             x0 = ci - 0.4 + width * (k + 0.5)
-            ys = [
-                r["result"]["vehicles"][v]["passing_time_s"]
-                for r in runs
-                if r["result"]["vehicles"][v]["passing_time_s"] is not None
-            ]
+            ys = [pt for r in results if (pt := r.vehicles[v].passing_time_s) is not None]
             colour = vehicle_color(k)
             if ys:
                 ax.boxplot(
@@ -796,7 +802,7 @@ def _column_paragraph(doc: Mapping[str, Any], col: Column) -> str:
     lines.append(head)
     lines.append("")
     beh = agg["behaviour"]
-    base_beh = doc["aggregates"][COLUMNS[0].key]["behaviour"]
+    base_beh = doc["aggregates"].get(COLUMNS[0].key, {}).get("behaviour")  # None: no baseline
     if beh is None:
         lines.append("No planner trace was recorded for this column (daemon harness).")
         return "\n".join(lines)
@@ -849,20 +855,19 @@ def _per_trial_table(doc: Mapping[str, Any]) -> str:
     header += [f"{v} passing [s]" for v in vehicles] + ["first", "stops", "min gap", "min PET"]
     rows = []
     for col in _columns_of(doc):
-        for r in doc["runs"][col.key]:
-            res = r["result"]
-            veh = res["vehicles"]
-            first = ",".join(v for v in vehicles if veh[v]["first_through"]) or "–"
+        for res in _column_results(doc, col.key):
+            veh = res.vehicles
+            first = ",".join(v for v in vehicles if veh[v].first_through) or "–"
             rows.append(
                 [
                     col.key,
-                    str(res["seed"]),
-                    *(fmt_num(res.get("start_times", {}).get(v), digits=3) for v in vehicles),
-                    *(fmt_num(veh[v]["passing_time_s"]) for v in vehicles),
+                    str(res.seed),
+                    *(fmt_num(res.start_times.get(v), digits=3) for v in vehicles),
+                    *(fmt_num(veh[v].passing_time_s) for v in vehicles),
                     first,
-                    "/".join(str(veh[v]["stops"]) for v in vehicles),
-                    fmt_num(res["min_gap_m"], "m"),
-                    fmt_num(res["min_pet_s"], "s"),
+                    "/".join(str(veh[v].stops) for v in vehicles),
+                    fmt_num(res.min_gap_m, "m"),
+                    fmt_num(res.min_pet_s, "s"),
                 ]
             )
     return markdown_table(header, rows, ["l"] + ["r"] * (len(header) - 1))
@@ -977,7 +982,7 @@ def run_paper_experiment(
                 continue
             behaviour = analyse_trial(scenario, o.trace) if o.trace is not None else None
             runs[o.trial.column.key].append(
-                {"trial": o.trial.index, "result": o.result, "behaviour": behaviour}
+                {"trial": o.trial.index, "result": o.result.to_dict(), "behaviour": behaviour}
             )
             if o.trace is not None:
                 traces[o.trial.column.key].append(split_trace(o.trace))
@@ -1044,28 +1049,30 @@ def _default_jobs() -> int:
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
+    """Options of ``crosspath experiment paper``; bad values are refused while parsing."""
     parser.add_argument(
-        "--trials", type=int, default=DEFAULT_TRIALS, help="trials per column (default 10)"
+        "--trials", type=positive_int, default=DEFAULT_TRIALS, help="trials per column"
+    )
+    parser.add_argument("--out", type=output_dir, default=DEFAULT_OUT, help="output directory")
+    parser.add_argument(
+        "--seed", type=non_negative_int, default=0, help="base seed: trial i uses seed + i"
     )
     parser.add_argument(
-        "--out", type=Path, default=DEFAULT_OUT, help="output directory (default results/paper)"
+        "--jobs", type=positive_int, default=None, help="worker processes (default: all cores)"
     )
     parser.add_argument(
-        "--seed", type=int, default=0, help="base seed: trial i uses seed + i (default 0)"
-    )
-    parser.add_argument(
-        "--jobs", type=int, default=None, help="worker processes (default: all cores)"
-    )
-    parser.add_argument(
-        "--scenario", type=Path, default=DEFAULT_SCENARIO, help="scenario file (TOML)"
+        "--scenario", type=Path, default=DEFAULT_SCENARIO, help="TOML file or packaged name"
     )
     parser.add_argument(
         "--daemons",
         action="store_true",
-        help="run each trial with real daemons over Zenoh (crosspath up), one after another",
+        help="run each trial with real daemons over Zenoh (as crosspath up), one after another",
     )
     parser.add_argument(
-        "--speed", type=float, default=None, help="with --daemons: run seconds per wall second"
+        "--speed",
+        type=run_speed,
+        default=None,
+        help="with --daemons: run seconds per wall second (default: the launcher's)",
     )
     parser.add_argument(
         "--traces", action="store_true", help="also write every trial's per-tick CSV"

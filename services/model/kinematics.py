@@ -13,14 +13,9 @@ import math
 from dataclasses import dataclass
 
 from services.model.geometry import FloatArray, footprint
+from services.model.limits import SPEED_CAP_FACTOR, STANDING_MPS
 
 __all__ = ["BodyState", "Limits", "TruthState", "step"]
-
-V_HARD_CAP_FACTOR = 1.05
-"""The speed never exceeds ``v_max * V_HARD_CAP_FACTOR`` whatever is commanded."""
-
-STOPPED_MPS = 1e-9
-"""Below this speed a car counts as standing."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -110,7 +105,7 @@ def step(state: BodyState, a_cmd: float, dt: float, limits: Limits) -> BodyState
     cmd = min(max(a_cmd, -limits.decel_emergency), limits.accel)
     tau = limits.actuator_lag_s
     s, v, a = state.s, max(state.v, 0.0), state.a
-    if v <= STOPPED_MPS:
+    if v <= STANDING_MPS:
         v = 0.0
         a = max(a, 0.0)  # brakes hold a standing car: no negative acceleration at rest
         if cmd <= 0.0 and a <= 0.0:
@@ -133,7 +128,7 @@ def step(state: BodyState, a_cmd: float, dt: float, limits: Limits) -> BodyState
             v1 = max(v1, 0.0)
         else:
             s1, v1, a1 = s_stop, 0.0, 0.0
-    cap = limits.v_max * V_HARD_CAP_FACTOR
+    cap = limits.v_max * SPEED_CAP_FACTOR
     if v1 > cap:
         s1 = s + 0.5 * (v + cap) * dt
         v1 = cap

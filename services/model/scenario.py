@@ -6,7 +6,15 @@ lanes and routes, conflict-zone crossings per route, the crossing lanes the
 blind-corner caution must watch, and packed building polygons for occlusion.
 
 Every problem is reported as one :class:`ScenarioError` naming the field path
-(``vehicles[1].route``) and the reason; unknown keys are refused.
+(``vehicles[1].route``) and the reason; unknown keys are refused. So is anything the
+wire format cannot carry (``protocol.codec``: ids, coordinates, speeds, sizes, points
+per message, the step between consecutive path points) or the RSU core would refuse
+(cross-field nonsense such as ``t_collision_s > t_free_s``): a scenario that loads
+never fails later with an ``EncodeError``.
+
+The RSU's tuning knobs (``[rsu_params]``, per RSU ``[rsus.params]``) and the car's
+(``[vehicle_params]``) are part of the scenario, so every harness (``crosspath sim``,
+the daemons, the experiments) runs the same experiment from the same file.
 
 Conventions (see ``geometry``): metres, seconds, radians; every position is a car's
 geometric centre; a route's ``s`` is the arc length of the centre along the route.
@@ -17,13 +25,14 @@ from __future__ import annotations
 import math
 import tomllib
 import zlib
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, TypeVar
 
 import numpy as np
 from pydantic import (
+    AfterValidator,
     BaseModel,
     ConfigDict,
     Discriminator,
@@ -36,6 +45,18 @@ from pydantic import (
     model_validator,
 )
 
+from protocol import Kind, max_points
+from protocol.codec import (
+    MAX_COORD_M,
+    MAX_LENGTH_M,
+    MAX_RADIUS_M,
+    MAX_SPEED_MPS,
+    MAX_STEP_M,
+    MAX_STEP_S,
+    MAX_WIDTH_M,
+)
+from protocol.keys import ID_CHARS, MAX_ID_LEN
+from services.model.catalog import resolve_scenario
 from services.model.geometry import (
     FloatArray,
     PolygonSet,
@@ -48,6 +69,7 @@ from services.model.geometry import (
     wrap_angle,
 )
 from services.model.kinematics import Limits
+from services.model.limits import SPEED_CAP_FACTOR
 
 __all__ = [
     "DEFAULT_LENGTH_M",
@@ -63,13 +85,16 @@ __all__ = [
     "MetricsSpec",
     "Params",
     "RouteSpec",
+    "RsuParams",
+    "RsuParamsOverrides",
     "RsuSpec",
     "Scenario",
     "ScenarioError",
     "ScenarioFile",
     "ScenarioInfo",
     "UniformStart",
-    "VehicleModel",
+    "VehicleParams",
+    "VehicleParamsOverrides",
     "VehicleSpec",
     "limits_from_params",
     "load_scenario",
@@ -93,7 +118,23 @@ entry heading comes from the same approach (it is followed, not crossed)."""
 SAMPLE_STEP_M = 0.25
 """Sampling step for comparing two paths inside a conflict zone (m)."""
 
-ID_PATTERN = r"^[A-Za-z0-9_-]{1,32}$"
+ID_PATTERN = rf"^[{ID_CHARS}]{{1,{MAX_ID_LEN}}}$"
+"""Ids are the wire's and the key expressions' (``protocol.keys``): 1..32 of [A-Za-z0-9_-]."""
+
+WIRE_SPEED_MAX_MPS = MAX_SPEED_MPS / SPEED_CAP_FACTOR
+"""Largest ``v_max_mps``: the physics lets a car reach ``v_max * SPEED_CAP_FACTOR``, and
+that speed must still fit the wire's ``MAX_SPEED_MPS`` [m/s]."""
+
+MIN_SIZE_M = 0.01
+"""Smallest car length or width and RSU coverage: the wire's resolution, 1 cm [m]."""
+
+FUTURE_PATH_POINTS_MAX = min(max_points(Kind.FUTURE_PATH), max_points(Kind.AUTONOMOUS_PATH))
+"""Most points a car can put in one future (or autonomous) path datagram."""
+
+PATH_THINNING = 2.0
+"""A coordinated path may skip every other point of the car's path when the RSU thins it
+to fit a datagram (``services.rsu.core``), so the per-point step of a future path must
+fit the wire's ``MAX_STEP_M`` / ``MAX_STEP_S`` this many times over."""
 
 
 class ScenarioError(ValueError):
@@ -111,7 +152,15 @@ class ScenarioError(ValueError):
 # --------------------------------------------------------------------------- file models
 
 Id = Annotated[str, Strict(), StringConstraints(pattern=ID_PATTERN)]
-F = Annotated[float, Strict()]
+
+
+def _on_the_wire(v: float) -> float:
+    if abs(v) > MAX_COORD_M:
+        raise ValueError(f"{v} m is beyond the wire format's ±{MAX_COORD_M:g} m")
+    return v
+
+
+F = Annotated[float, Strict(), AfterValidator(_on_the_wire)]
 PosF = Annotated[float, Strict(), Field(gt=0.0)]
 NonNegF = Annotated[float, Strict(), Field(ge=0.0)]
 PosInt = Annotated[int, Strict(), Field(gt=0)]
@@ -122,6 +171,26 @@ PolygonPoints = Annotated[list[Point], Field(min_length=3)]
 
 class _Model(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+
+def _check_wire_speed(v: float | None) -> float | None:
+    if v is not None and v > WIRE_SPEED_MAX_MPS:
+        raise ValueError(
+            f"{v} m/s: a car may reach {SPEED_CAP_FACTOR} x v_max, and the wire carries at "
+            f"most {MAX_SPEED_MPS:g} m/s (so v_max_mps <= {WIRE_SPEED_MAX_MPS:.2f})"
+        )
+    return v
+
+
+def _wire_size(what: str, most: float) -> Callable[[float], float]:
+    """A validator: sizes the wire carries in whole centimetres, from 1 cm to ``most`` m."""
+
+    def check(v: float) -> float:
+        if not MIN_SIZE_M <= v <= most:
+            raise ValueError(f"{v} m: the wire carries {what} of {MIN_SIZE_M}..{most:g} m")
+        return v
+
+    return check
 
 
 def _check_convex(v: list[tuple[float, float]]) -> list[tuple[float, float]]:
@@ -157,6 +226,28 @@ class Params(_Model):
     future_path_points: Annotated[int, Strict(), Field(ge=2)] = 120
     max_sim_s: PosF = 120.0
     goal_tolerance_m: PosF = 1.0
+
+    _wire_speed = field_validator("v_max_mps")(_check_wire_speed)
+
+    @field_validator("future_path_points")
+    @classmethod
+    def _fits_a_datagram(cls, v: int) -> int:
+        if v > FUTURE_PATH_POINTS_MAX:
+            raise ValueError(
+                f"{v} points do not fit one datagram: a future path carries at most "
+                f"{FUTURE_PATH_POINTS_MAX} (protocol.max_points)"
+            )
+        return v
+
+    @field_validator("t_free_s")
+    @classmethod
+    def _horizon(cls, v: float) -> float:
+        if v > MAX_STEP_S:
+            raise ValueError(
+                f"{v} s: a standing car's future path holds its last point t_free_s after "
+                f"the first, and the wire carries at most {MAX_STEP_S} s between points"
+            )
+        return v
 
     @model_validator(mode="after")
     def _consistent(self) -> Params:
@@ -236,6 +327,8 @@ class DynamicsOverrides(_Model):
     decel_emergency_mps2: PosF | None = None
     actuator_lag_s: NonNegF | None = None
 
+    _wire_speed = field_validator("v_max_mps")(_check_wire_speed)
+
 
 def _start_kind(v: Any) -> str | None:
     if isinstance(v, Mapping | UniformStart):
@@ -255,6 +348,41 @@ StartTime = Annotated[
 ]
 
 
+class VehicleParams(_Model):
+    """``[vehicle_params]``: the car's planner and controller knobs (``services.vehicle``);
+    defaults are the ones the results in the README were made with."""
+
+    stop_margin_m: NonNegF = 0.3
+    """Planned stops aim this far before the stop line, for the actuator lag [m]."""
+    caution_sample_m: PosF = 2.0
+    """Spacing of the points sampled along crossing lanes to judge visibility [m]."""
+    creep_mps: PosF = 1.5
+    """Under caution, past the stop line the car creeps this fast at most, to see [m/s]."""
+    creep_margin_m: NonNegF = 0.5
+    """Creeping stops this far before the conflict zone [m]."""
+    emergency_gap_m: NonNegF = 1.5
+    """Gap kept to a sensed car on the path when braking for it [m]."""
+    control_lookahead_s: NonNegF = 0.3
+    """The controller tracks the planned speed this far ahead (about the actuator lag) [s]."""
+    control_time_constant_s: PosF = 0.4
+    """Speed error to acceleration command gain is 1 / this [s]."""
+    fp_stale_s: PosF = 0.5
+    """Received future paths older than this are forgotten [s]."""
+
+
+class VehicleParamsOverrides(_Model):
+    """``[vehicles.params]``: one car's own knobs; a key left out keeps ``[vehicle_params]``."""
+
+    stop_margin_m: NonNegF | None = None
+    caution_sample_m: PosF | None = None
+    creep_mps: PosF | None = None
+    creep_margin_m: NonNegF | None = None
+    emergency_gap_m: NonNegF | None = None
+    control_lookahead_s: NonNegF | None = None
+    control_time_constant_s: PosF | None = None
+    fp_stale_s: PosF | None = None
+
+
 class VehicleSpec(_Model):
     """``[[vehicles]]``: one car. ``goal_m`` None means the route's end."""
 
@@ -263,13 +391,51 @@ class VehicleSpec(_Model):
     start_time_s: StartTime = 0.0
     start_offset_m: NonNegF = 0.0
     goal_m: PosF | None = None
-    length_m: PosF = DEFAULT_LENGTH_M
-    width_m: PosF = DEFAULT_WIDTH_M
+    length_m: Annotated[PosF, AfterValidator(_wire_size("car lengths", MAX_LENGTH_M))] = (
+        DEFAULT_LENGTH_M
+    )
+    width_m: Annotated[PosF, AfterValidator(_wire_size("car widths", MAX_WIDTH_M))] = (
+        DEFAULT_WIDTH_M
+    )
     dynamics: DynamicsOverrides | None = None
+    params: VehicleParamsOverrides | None = None
 
 
-VehicleModel = VehicleSpec
-"""Alias of :class:`VehicleSpec`."""
+class RsuParams(_Model):
+    """``[rsu_params]``: the RSU core's knobs beyond the paper's ``[params]`` (defaults are
+    the ones the results in the README were made with; ``services.rsu.velocity`` and
+    ``services.rsu.modes`` say what each does)."""
+
+    command_repeat_s: PosF = 0.1
+    """A mode command is repeated this often until the car's future path shows it [s]."""
+    beacon_period_s: PosF = 1.0
+    """The RSU beacon's period [s]."""
+    stop_gap_m: NonNegF = 2.0
+    """``slot``: front bumper to zone edge when a car must stop and wait [m]."""
+    slot_step_s: PosF = 0.1
+    """``slot``: granularity of the entry-time search [s]."""
+    slot_min_speed_mps: PosF = 2.0
+    """``slot``: below this a car stops and waits rather than crawl [m/s]; < ``v_max_mps``."""
+    hold_step_s: PosF = 0.5
+    """Spacing of the points holding a stop [s]; < 2 ``headway_s``, so that no crossing
+    point can fall between two of them unseen."""
+    release_margin_m: NonNegF = 0.6
+    """Hysteresis: "free" and releases need this much more room than a conflict [m]..."""
+    release_margin_s: NonNegF = 0.2
+    """... and this much more headway [s]."""
+
+
+class RsuParamsOverrides(_Model):
+    """``[rsus.params]``: one RSU's own knobs; a key left out keeps ``[rsu_params]``."""
+
+    command_repeat_s: PosF | None = None
+    beacon_period_s: PosF | None = None
+    stop_gap_m: NonNegF | None = None
+    slot_step_s: PosF | None = None
+    slot_min_speed_mps: PosF | None = None
+    hold_step_s: PosF | None = None
+    release_margin_m: NonNegF | None = None
+    release_margin_s: NonNegF | None = None
 
 
 class RsuSpec(_Model):
@@ -278,7 +444,8 @@ class RsuSpec(_Model):
     id: Id
     intersection: Id
     position: Point
-    coverage_m: PosF = 150.0
+    coverage_m: Annotated[PosF, AfterValidator(_wire_size("coverage radii", MAX_RADIUS_M))] = 150.0
+    params: RsuParamsOverrides | None = None
 
 
 class MetricsSpec(_Model):
@@ -299,6 +466,8 @@ class ScenarioFile(_Model):
     routes: Annotated[list[RouteSpec], Field(min_length=1)]
     vehicles: Annotated[list[VehicleSpec], Field(min_length=1)]
     rsus: list[RsuSpec] = []
+    rsu_params: RsuParams = RsuParams()
+    vehicle_params: VehicleParams = VehicleParams()
     metrics: MetricsSpec = MetricsSpec()
 
 
@@ -354,7 +523,7 @@ def _wrap_validation(err: ValidationError, source: str) -> ScenarioError:
         if e["type"] == "extra_forbidden":
             msg = "unknown key"
         elif e["type"] == "string_pattern_mismatch":
-            msg = f"{e['input']!r} is not a valid id: use 1 to 32 of A-Z a-z 0-9 _ -"
+            msg = f"{e['input']!r} is not a valid id: use 1 to {MAX_ID_LEN} of A-Z a-z 0-9 _ -"
         elif msg.startswith("Value error, "):
             msg = msg[len("Value error, ") :]
         items.append((_fmt_loc(e["loc"]), msg))
@@ -376,6 +545,8 @@ class Scenario:
         self._vehicles: dict[str, VehicleSpec] = {}
         self._intersections: dict[str, IntersectionSpec] = {}
         self._rsus: dict[str, RsuSpec] = {}
+        self._rsu_params: dict[str, RsuParams] = {}
+        self._vehicle_params: dict[str, VehicleParams] = {}
         self._zones: dict[str, FloatArray] = {}
         self._crossings: dict[tuple[str, str, float], list[Crossing]] = {}
         self._approach: dict[tuple[str, str], list[ApproachLane]] = {}
@@ -406,6 +577,12 @@ class Scenario:
             ("rsus", sp.rsus),
         ):
             self._unique(kind, [it.id for it in items])
+        if sp.params.t_collision_s > sp.params.t_free_s:
+            raise self._err(
+                "params.t_collision_s",
+                f"{sp.params.t_collision_s} s must not exceed t_free_s ({sp.params.t_free_s} s): "
+                "the RSU looks for conflicts within the horizon the paths cover",
+            )
         vids = {v.id for v in sp.vehicles}
         for i, r in enumerate(sp.rsus):
             if r.id in vids:
@@ -451,12 +628,14 @@ class Scenario:
             if goal <= v.start_offset_m:
                 raise self._err(f"vehicles[{i}].goal_m", "must be after start_offset_m")
             try:
-                limits_from_params(sp.params, v.dynamics)
+                limits = limits_from_params(sp.params, v.dynamics)
             except ValueError as exc:
                 raise self._err(f"vehicles[{i}].dynamics", str(exc)) from None
+            self._check_path_step(i, v, limits)
             rv = v.model_copy(update={"goal_m": min(goal, line.length)})
             resolved.append(rv)
             self._vehicles[v.id] = rv
+            self._vehicle_params[v.id] = _merged(sp.vehicle_params, v.params)
         self.vehicles: tuple[VehicleSpec, ...] = tuple(resolved)
         self._pack_lanes()
 
@@ -468,6 +647,66 @@ class Scenario:
                     f"unknown intersection {r.intersection!r} (known: {known})",
                 )
             self._rsus[r.id] = r
+            self._rsu_params[r.id] = self._check_rsu_params(
+                _merged(sp.rsu_params, r.params), f"rsus[{i}]", r.params
+            )
+
+    def _point_step_m(self, limits: Limits) -> float:
+        """Distance between consecutive future-path points of a car at its speed cap [m]."""
+        p = self.spec.params
+        return limits.v_max * SPEED_CAP_FACTOR * p.t_free_s / (p.future_path_points - 1)
+
+    def _check_path_step(self, i: int, v: VehicleSpec, limits: Limits) -> None:
+        """A car's future path, and a coordinated path thinned from it, must fit the wire's
+        largest step between consecutive points."""
+        p = self.spec.params
+        step = self._point_step_m(limits)
+        if step * PATH_THINNING <= MAX_STEP_M:
+            return
+        own = v.dynamics is not None and v.dynamics.v_max_mps is not None
+        path = f"vehicles[{i}].dynamics.v_max_mps" if own else "params.future_path_points"
+        raise self._err(
+            path,
+            f"car {v.id!r} at {limits.v_max * SPEED_CAP_FACTOR:.1f} m/s puts its future-path "
+            f"points {step:.1f} m apart ({p.t_free_s} s over {p.future_path_points - 1} "
+            f"steps); thinned by the RSU that is {step * PATH_THINNING:.1f} m, and the wire "
+            f"carries at most {MAX_STEP_M} m between points: raise future_path_points or "
+            "lower t_free_s or v_max_mps",
+        )
+
+    def _check_rsu_params(
+        self, rp: RsuParams, where: str, overrides: RsuParamsOverrides | None
+    ) -> RsuParams:
+        """Refuse RSU knobs the core cannot work with, naming the field that set them
+        (``rsus[i].params.x`` when the RSU overrides it, else ``rsu_params.x``)."""
+        p = self.spec.params
+
+        def path(name: str) -> str:
+            if overrides is not None and getattr(overrides, name) is not None:
+                return f"{where}.params.{name}"
+            return f"rsu_params.{name}"
+
+        if rp.slot_min_speed_mps >= p.v_max_mps:
+            raise self._err(
+                path("slot_min_speed_mps"),
+                f"{rp.slot_min_speed_mps} m/s must be below params.v_max_mps "
+                f"({p.v_max_mps:.2f} m/s)",
+            )
+        if p.headway_s > 0.0 and rp.hold_step_s >= 2.0 * p.headway_s:
+            raise self._err(
+                path("hold_step_s"),
+                f"{rp.hold_step_s} s must be below 2 x params.headway_s ({2.0 * p.headway_s} s): "
+                "a crossing point could fall between two hold points unseen",
+            )
+        steps = [self._point_step_m(self.limits(v.id)) for v in self.vehicles]
+        crawl_s = max(steps, default=0.0) * PATH_THINNING / rp.slot_min_speed_mps
+        if crawl_s > MAX_STEP_S:
+            raise self._err(
+                path("slot_min_speed_mps"),
+                f"a car crawling at {rp.slot_min_speed_mps} m/s takes {crawl_s:.1f} s between "
+                f"coordinated-path points; the wire carries at most {MAX_STEP_S} s",
+            )
+        return rp
 
     def _build_line(
         self, where: str, points: Sequence[tuple[float, float]], radius: float
@@ -544,6 +783,16 @@ class Scenario:
 
     def rsu(self, rsu_id: str) -> RsuSpec:
         return self._rsus[rsu_id]
+
+    def rsu_params(self, rsu_id: str) -> RsuParams:
+        """The RSU's knobs: ``[rsu_params]`` with its own ``params`` overrides. KeyError if
+        unknown."""
+        return self._rsu_params[rsu_id]
+
+    def vehicle_params(self, vehicle_id: str) -> VehicleParams:
+        """The car's planner and controller knobs: ``[vehicle_params]`` with its own
+        ``params`` overrides. KeyError if unknown."""
+        return self._vehicle_params[vehicle_id]
 
     def zone_polygon(self, intersection_id: str) -> FloatArray:
         """The intersection's conflict zone, read-only (K, 2)."""
@@ -722,13 +971,26 @@ def parse_scenario(text: str, source: str = "<string>") -> Scenario:
 
 
 def load_scenario(path: str | Path) -> Scenario:
-    """Load and validate a scenario file; raises :class:`ScenarioError`."""
+    """Load and validate a scenario file, or a packaged scenario by name
+    (:func:`~services.model.catalog.resolve_scenario`); raises :class:`ScenarioError`."""
     p = Path(path)
     try:
+        p = resolve_scenario(p)
         text = p.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:
         raise ScenarioError("", f"cannot read scenario file: {exc}", str(p)) from None
     return parse_scenario(text, str(p))
+
+
+_M = TypeVar("_M", bound=BaseModel)
+
+
+def _merged(base: _M, overrides: BaseModel | None) -> _M:
+    """``base`` with every field ``overrides`` sets (not None) replaced (both validated)."""
+    if overrides is None:
+        return base
+    update = {k: v for k, v in overrides.model_dump().items() if v is not None}
+    return base.model_copy(update=update)
 
 
 def limits_from_params(params: Params, overrides: DynamicsOverrides | None = None) -> Limits:

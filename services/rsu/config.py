@@ -1,7 +1,11 @@
 """The RSU core's configuration: one frozen object per RSU (aioquic's ``QuicConfiguration``).
 
 Built from a scenario by :func:`rsu_config`; the daemon and the in-process harness
-both use it, so an RSU behaves the same in either.
+both use it, so an RSU behaves the same in either. Every knob comes from the
+scenario file, validated there (pydantic: ``[params]``, ``[rsu_params]`` and the
+RSU's own ``[rsus.params]``, see ``scenarios/README.md``); ``RsuConfig`` stays a
+plain frozen object so that the core knows nothing of pydantic, and its own checks
+only guard against a caller's bug (a ``ValueError``).
 """
 
 from __future__ import annotations
@@ -13,13 +17,18 @@ import numpy as np
 import numpy.typing as npt
 
 from protocol import Kind, max_points
-from services.model.scenario import Scenario
+from services.model.scenario import Params, RsuParams, Scenario
 from services.model.types import Policy
 from services.rsu import paths
 
 __all__ = ["RsuConfig", "rsu_config"]
 
 FloatArray = npt.NDArray[np.float64]
+
+_PAPER = Params()
+_KNOBS = RsuParams()
+# RsuConfig's defaults are the scenario's (one owner): a core built by hand in a test or
+# a benchmark behaves as one built from a scenario that leaves the knobs out.
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -38,23 +47,24 @@ class RsuConfig:
     center: tuple[float, float]
     conflict_zone: FloatArray
     coverage_m: float = 150.0
-    d_margin_m: float = 2.8
-    headway_s: float = 1.0
-    t_collision_s: float = 5.0
-    t_free_s: float = 10.0
-    expiry_s: float = 0.5
-    v_max_mps: float = 50 / 3.6
-    accel_mps2: float = 1.5
-    decel_comfort_mps2: float = 2.0
+    d_margin_m: float = _PAPER.d_margin_m
+    headway_s: float = _PAPER.headway_s
+    t_collision_s: float = _PAPER.t_collision_s
+    t_free_s: float = _PAPER.t_free_s
+    expiry_s: float = _PAPER.reservation_expiry_s
+    v_max_mps: float = _PAPER.v_max_mps
+    accel_mps2: float = _PAPER.accel_mps2
+    decel_comfort_mps2: float = _PAPER.decel_comfort_mps2
     policy: Policy = Policy.PAPER
-    command_repeat_s: float = 0.1
-    beacon_period_s: float = 1.0
-    stop_gap_m: float = 2.0  # slot: front bumper to zone edge when it must stop and wait
-    slot_step_s: float = 0.1  # slot: granularity of the entry-time search
-    slot_min_speed_mps: float = 2.0  # slot: below this, stop and wait rather than crawl
-    hold_step_s: float = 0.5  # spacing of the points holding a stop (< 2 * headway)
-    release_margin_m: float = 0.6  # hysteresis: "free" and releases need this much more room
-    release_margin_s: float = 0.2  # ... and this much more headway (see services.rsu.modes)
+    # the knobs of [rsu_params] (services.model.scenario.RsuParams documents each)
+    command_repeat_s: float = _KNOBS.command_repeat_s
+    beacon_period_s: float = _KNOBS.beacon_period_s
+    stop_gap_m: float = _KNOBS.stop_gap_m
+    slot_step_s: float = _KNOBS.slot_step_s
+    slot_min_speed_mps: float = _KNOBS.slot_min_speed_mps
+    hold_step_s: float = _KNOBS.hold_step_s
+    release_margin_m: float = _KNOBS.release_margin_m
+    release_margin_s: float = _KNOBS.release_margin_s
     max_points: int | None = None  # cap on coordinated path points (the codec's limit), or none
 
     def __post_init__(self) -> None:
@@ -98,9 +108,11 @@ class RsuConfig:
 
 
 def rsu_config(scenario: Scenario, rsu_id: str, policy: Policy) -> RsuConfig:
-    """The RSU core's configuration from the scenario (the daemon and the harness)."""
+    """The RSU core's configuration from the scenario (the daemon and the harness):
+    ``[params]``, then ``[rsu_params]`` with the RSU's own overrides."""
     p = scenario.params
     spec = scenario.rsu(rsu_id)
+    knobs = scenario.rsu_params(rsu_id)
     inter = scenario.intersection(spec.intersection)
     return RsuConfig(
         rsu_id=spec.id,
@@ -117,6 +129,14 @@ def rsu_config(scenario: Scenario, rsu_id: str, policy: Policy) -> RsuConfig:
         accel_mps2=p.accel_mps2,
         decel_comfort_mps2=p.decel_comfort_mps2,
         policy=policy,
+        command_repeat_s=knobs.command_repeat_s,
+        beacon_period_s=knobs.beacon_period_s,
+        stop_gap_m=knobs.stop_gap_m,
+        slot_step_s=knobs.slot_step_s,
+        slot_min_speed_mps=knobs.slot_min_speed_mps,
+        hold_step_s=knobs.hold_step_s,
+        release_margin_m=knobs.release_margin_m,
+        release_margin_s=knobs.release_margin_s,
         # a coordinated path must fit one datagram: thin it to what the codec guarantees
         max_points=max_points(Kind.COORDINATED_PATH),
     )

@@ -17,7 +17,15 @@ Per received message (paper §IV-C; the rules are in ``services.rsu.modes``):
   answered with a coordinated path (or a termination).
 * Anything else, anything for another RSU, from a car the RSU does not
   coordinate, from outside coverage, out of order or malformed: ignored and
-  counted in ``counters``. Nothing a peer sends raises out of ``on_message``.
+  counted in ``counters``.
+
+Errors as h11 splits them: a path is validated once, where it comes in
+(:func:`path_problem`: finite, within the wire's bounds, (N, 3) points, a
+sender); an invalid one is counted in ``invalid`` and ``invalid_<reason>`` and
+dropped, so nothing a peer sends raises out of ``on_message``. Past that check
+the decision code trusts its input: an exception out of ``on_message`` or
+``tick`` is a bug of ours and propagates (the daemon shell logs it with its
+traceback and exits, see ``services.edge.shell``).
 
 ``tick(now)`` (10 Hz) expires silent cars, repeats pending commands every
 ``command_repeat_s`` and sends the beacon every ``beacon_period_s``.
@@ -33,6 +41,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
+from protocol.codec import MAX_COORD_M
 from protocol.messages import (
     AutonomousPath,
     Command,
@@ -48,17 +57,16 @@ from protocol.messages import (
 from services.model.types import Policy
 from services.rsu import paths
 from services.rsu.config import RsuConfig
-from services.rsu.modes import Action, Event, transition
-from services.rsu.reservation import Conflict, ReservationTable
+from services.rsu.modes import Action, RsuEvent, transition
+from services.rsu.reservation import Conflict, ReservationTable, within_wire_bounds
 from services.rsu.velocity import SpeedPlan, VelocityManager
 
-__all__ = ["Outgoing", "Policy", "RsuConfig", "RsuCore"]
+__all__ = ["Outgoing", "Policy", "RsuConfig", "RsuCore", "path_problem"]
 
 log = logging.getLogger("crosspath.rsu")
 
 FloatArray = npt.NDArray[np.float64]
 
-_MAX_ABS = 1e9  # largest |coordinate| [m] or |time| [s] accepted from a peer
 _DUE_SLACK_S = 1e-6  # a deadline this close counts as reached (float rounding)
 
 
@@ -105,18 +113,27 @@ class _Car:
             self.length, self.width = path.length, path.width
 
 
-def _valid_path(path: VehiclePath) -> bool:
+def path_problem(path: VehiclePath) -> str | None:
+    """Why a received path cannot be used (a short reason, the counter's suffix), or None.
+
+    The decoder already refuses most of this; the check is here too because the core
+    also takes messages that did not come through it (tests, other harnesses).
+    """
     scalars = (path.x, path.y, path.speed, path.heading, path.length, path.width)
     if not all(isinstance(v, int | float) and math.isfinite(v) for v in scalars):
-        return False
-    if path.speed < 0 or path.length < 0 or path.width < 0 or not path.header.sender:
-        return False
-    if abs(path.x) > _MAX_ABS or abs(path.y) > _MAX_ABS:
-        return False
+        return "not_finite"
+    if path.speed < 0 or path.length < 0 or path.width < 0:
+        return "negative"
+    if not path.header.sender:
+        return "no_sender"
+    if abs(path.x) > MAX_COORD_M or abs(path.y) > MAX_COORD_M:
+        return "out_of_bounds"
     pts = path.points
-    if pts.ndim != 2 or pts.shape[1] != 3:
-        return False
-    return bool(np.all(np.isfinite(pts))) and not (pts.size and float(np.abs(pts).max()) > _MAX_ABS)
+    if not isinstance(pts, np.ndarray) or pts.ndim != 2 or pts.shape[1] != 3:
+        return "points_shape"
+    if not within_wire_bounds(pts):
+        return "points_out_of_bounds"
+    return None
 
 
 class RsuCore:
@@ -170,18 +187,32 @@ class RsuCore:
     def on_message(
         self, now: float, message: Message, rsu_key: str | None = None
     ) -> list[Outgoing]:
-        """Handle one received message; return what to send."""
-        try:
-            if isinstance(message, FuturePath):
-                return self._on_future_path(now, message)
-            if isinstance(message, AutonomousPath):
-                return self._on_autonomous_path(now, message, rsu_key)
-        except (ValueError, ArithmeticError) as exc:
-            self.counters["errors"] += 1
-            log.warning("rsu %s: dropped %s: %s", self.config.rsu_id, type(message).__name__, exc)
-            return []
+        """Handle one received message; return what to send.
+
+        A peer's bad message is counted and dropped; an exception is a bug of ours.
+        """
+        if isinstance(message, FuturePath):
+            return self._on_future_path(now, message)
+        if isinstance(message, AutonomousPath):
+            return self._on_autonomous_path(now, message, rsu_key)
         self.counters["ignored_kind"] += 1
         return []
+
+    def _invalid(self, path: VehiclePath) -> bool:
+        """Count and log (debug) a path that fails :func:`path_problem`."""
+        problem = path_problem(path)
+        if problem is None:
+            return False
+        self.counters["invalid"] += 1
+        self.counters[f"invalid_{problem}"] += 1
+        log.debug(
+            "rsu %s: dropped %s from %r: %s",
+            self.config.rsu_id,
+            type(path).__name__,
+            path.header.sender,
+            problem,
+        )
+        return True
 
     def tick(self, now: float) -> list[Outgoing]:
         """Periodic work (10 Hz): expiry of silent cars, command repeats, the beacon."""
@@ -218,8 +249,7 @@ class RsuCore:
 
     def _on_future_path(self, now: float, fp: FuturePath) -> list[Outgoing]:
         self.counters["fp_rx"] += 1
-        if not _valid_path(fp):
-            self.counters["invalid"] += 1
+        if self._invalid(fp):
             return []
         vehicle = fp.header.sender
         car = self._cars.get(vehicle)
@@ -242,7 +272,7 @@ class RsuCore:
         car.observe(fp)
         coordinated = car.mode != Mode.AUTO
         if coordinated and self._leaving(car):
-            return self._apply(now, car, Event.LEAVING, fp, None)
+            return self._apply(now, car, RsuEvent.LEAVING, fp, None)
         if car.pending is not None and vehicle in self.table:
             # It has not taken our last command yet: this path does not reflect it.
             self.table.touch(vehicle, now)
@@ -271,8 +301,7 @@ class RsuCore:
         if rsu_key is not None and rsu_key != self.config.rsu_id:
             self.counters["foreign_rsu"] += 1
             return []
-        if not _valid_path(ap):
-            self.counters["invalid"] += 1
+        if self._invalid(ap):
             return []
         car = self._cars.get(ap.header.sender)
         if car is None:
@@ -336,7 +365,7 @@ class RsuCore:
         plan: SpeedPlan | None = None
         near: list[Conflict] = []
         if self._leaving(car):
-            event = Event.LEAVING
+            event = RsuEvent.LEAVING
         else:
             if car.mode == Mode.C_FAST:
                 plan = self.velocity.plan(car.vehicle, path, Mode.C_FAST, now, self.table)
@@ -357,19 +386,19 @@ class RsuCore:
                     yields = True
                     break
             if yields:
-                event = Event.CONFLICT
+                event = RsuEvent.CONFLICT
             elif not found and self._approaching(car, path, now) and self._clear(car, query, now):
-                event = Event.FREE_APPROACHING
+                event = RsuEvent.FREE_APPROACHING
             else:
-                event = Event.NO_CONFLICT
+                event = RsuEvent.NO_CONFLICT
         out = self._apply(now, car, event, path, plan)
         if car.mode == Mode.C_FAST:
-            reuse = near if plan is not None and event != Event.CONFLICT else None
+            reuse = near if plan is not None and event != RsuEvent.CONFLICT else None
             out.extend(self._give_way_to(now, car, reuse))
         return out
 
     def _apply(
-        self, now: float, car: _Car, event: Event, path: VehiclePath, plan: SpeedPlan | None
+        self, now: float, car: _Car, event: RsuEvent, path: VehiclePath, plan: SpeedPlan | None
     ) -> list[Outgoing]:
         """One transition of the table for ``car``, and what it sends."""
         self.counters[f"event_{event.name.lower()}"] += 1
@@ -401,7 +430,7 @@ class RsuCore:
         if car is None:
             self.table.remove(vehicle)
             return
-        _, action = transition(car.mode, Event.SILENT)
+        _, action = transition(car.mode, RsuEvent.SILENT)
         if action == Action.FORGET:
             self.forget(vehicle)
 
@@ -421,7 +450,7 @@ class RsuCore:
             other_points = other.autonomous.points if other_entry is None else other_entry.points
             if not self._yields(other, other_points, car):
                 continue
-            event = Event.LEAVING if self._leaving(other) else Event.CONFLICT
+            event = RsuEvent.LEAVING if self._leaving(other) else RsuEvent.CONFLICT
             self.counters["given_way"] += 1
             out.extend(self._apply(now, other, event, other.autonomous, None))
         return out

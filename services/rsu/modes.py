@@ -2,7 +2,7 @@
 
 Every car the RSU knows is in one of three modes: ``AUTO`` (drives its
 autonomous plan), ``C_SLOW`` (coordinated, slowing), ``C_FAST`` (coordinated,
-speeding up). The RSU turns what it learns about a car into one ``Event`` and
+speeding up). The RSU turns what it learns about a car into one ``RsuEvent`` and
 looks up ``TRANSITIONS[(mode, event)] -> (next mode, action)``; nothing else
 changes a mode. Events, in the order the RSU tests them:
 
@@ -59,7 +59,7 @@ from enum import IntEnum
 from protocol.messages import Mode
 
 
-class Event(IntEnum):
+class RsuEvent(IntEnum):
     """What the RSU learned about one car (see module docstring)."""
 
     CONFLICT = 1
@@ -85,36 +85,36 @@ class InvalidTransition(ValueError):
 
 _A, _S, _F = Mode.AUTO, Mode.C_SLOW, Mode.C_FAST
 
-TRANSITIONS: dict[tuple[Mode, Event], tuple[Mode, Action]] = {
+TRANSITIONS: dict[tuple[Mode, RsuEvent], tuple[Mode, Action]] = {
     # AUTO: initiate on conflict (slow) or on a free approach (fast).
-    (_A, Event.CONFLICT): (_S, Action.SEND_INITIATION_SLOW),
-    (_A, Event.FREE_APPROACHING): (_F, Action.SEND_INITIATION_FAST),
-    (_A, Event.NO_CONFLICT): (_A, Action.NONE),
-    (_A, Event.LEAVING): (_A, Action.NONE),
-    (_A, Event.SILENT): (_A, Action.FORGET),
+    (_A, RsuEvent.CONFLICT): (_S, Action.SEND_INITIATION_SLOW),
+    (_A, RsuEvent.FREE_APPROACHING): (_F, Action.SEND_INITIATION_FAST),
+    (_A, RsuEvent.NO_CONFLICT): (_A, Action.NONE),
+    (_A, RsuEvent.LEAVING): (_A, Action.NONE),
+    (_A, RsuEvent.SILENT): (_A, Action.FORGET),
     # C_SLOW: judged on its autonomous path; released to C_FAST or AUTO.
-    (_S, Event.CONFLICT): (_S, Action.NONE),
-    (_S, Event.FREE_APPROACHING): (_F, Action.SEND_INITIATION_FAST),
-    (_S, Event.NO_CONFLICT): (_A, Action.SEND_TERMINATION),
-    (_S, Event.LEAVING): (_A, Action.SEND_TERMINATION),
-    (_S, Event.SILENT): (_A, Action.FORGET),
+    (_S, RsuEvent.CONFLICT): (_S, Action.NONE),
+    (_S, RsuEvent.FREE_APPROACHING): (_F, Action.SEND_INITIATION_FAST),
+    (_S, RsuEvent.NO_CONFLICT): (_A, Action.SEND_TERMINATION),
+    (_S, RsuEvent.LEAVING): (_A, Action.SEND_TERMINATION),
+    (_S, RsuEvent.SILENT): (_A, Action.FORGET),
     # C_FAST: keeps V_max through the intersection until it leaves or loses priority.
-    (_F, Event.CONFLICT): (_S, Action.SEND_INITIATION_SLOW),
-    (_F, Event.FREE_APPROACHING): (_F, Action.NONE),
-    (_F, Event.NO_CONFLICT): (_F, Action.NONE),
-    (_F, Event.LEAVING): (_A, Action.SEND_TERMINATION),
-    (_F, Event.SILENT): (_A, Action.FORGET),
+    (_F, RsuEvent.CONFLICT): (_S, Action.SEND_INITIATION_SLOW),
+    (_F, RsuEvent.FREE_APPROACHING): (_F, Action.NONE),
+    (_F, RsuEvent.NO_CONFLICT): (_F, Action.NONE),
+    (_F, RsuEvent.LEAVING): (_A, Action.SEND_TERMINATION),
+    (_F, RsuEvent.SILENT): (_A, Action.FORGET),
 }
 
 
-def transition(mode: Mode, event: Event) -> tuple[Mode, Action]:
+def transition(mode: Mode, event: RsuEvent) -> tuple[Mode, Action]:
     """Look up the next mode and the action; raise InvalidTransition for anything else.
 
     Plain ints are refused (an IntEnum hashes like its value, so ``(0, 1)``
     would otherwise silently match a pair of the table).
     """
-    if not isinstance(mode, Mode) or not isinstance(event, Event):
-        raise InvalidTransition(f"not a (Mode, Event) pair: ({mode!r}, {event!r})")
+    if not isinstance(mode, Mode) or not isinstance(event, RsuEvent):
+        raise InvalidTransition(f"not a (Mode, RsuEvent) pair: ({mode!r}, {event!r})")
     try:
         return TRANSITIONS[(mode, event)]
     except KeyError:

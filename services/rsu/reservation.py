@@ -26,13 +26,31 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
+from protocol.codec import MAX_COORD_M, MAX_TIME_US
+
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
 
 _AXIS_BITS = 21
 _MASK = (1 << _AXIS_BITS) - 1
 _CELL_SLACK = 1.0 + 1e-9
-_MAX_ABS = 1e9  # largest |x|, |y| [m] or |t| [s] accepted
+_MAX_T_S = MAX_TIME_US / 1e6  # largest |t| [s]: the wire's bound on generation times
+_OUT_OF_BOUNDS = (
+    f"path points must be finite, |x| and |y| <= {MAX_COORD_M:g} m, |t| <= {_MAX_T_S:g} s"
+)
+
+
+def within_wire_bounds(points: FloatArray) -> bool:
+    """True when the (N, 3) x, y, t ``points`` are finite and within what the wire can
+    carry: |x|, |y| <= ``protocol.codec.MAX_COORD_M`` [m], |t| <= ``MAX_TIME_US`` [s]."""
+    if not np.all(np.isfinite(points)):
+        return False
+    if not points.size:
+        return True
+    return bool(
+        float(np.abs(points[:, :2]).max()) <= MAX_COORD_M
+        and float(np.abs(points[:, 2]).max()) <= _MAX_T_S
+    )
 
 
 def _offsets(rxy: int, rt: int) -> IntArray:
@@ -196,8 +214,8 @@ class ReservationTable:
         pts = np.array(points, dtype=np.float64)
         if pts.ndim != 2 or pts.shape[1] != 3:
             raise ValueError(f"a path is an (N, 3) array of x, y, t; got shape {pts.shape}")
-        if not np.all(np.isfinite(pts)) or (pts.size and float(np.abs(pts).max()) > _MAX_ABS):
-            raise ValueError("path points must be finite and within ±1e9")
+        if not within_wire_bounds(pts):
+            raise ValueError(_OUT_OF_BOUNDS)
         if not math.isfinite(now):
             raise ValueError("now must be finite")
         length, width = float(shape[0]), float(shape[1])
@@ -397,6 +415,6 @@ def _checked(points: npt.ArrayLike) -> FloatArray:
     pts = np.asarray(points, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise ValueError(f"a path is an (N, 3) array of x, y, t; got shape {pts.shape}")
-    if not np.all(np.isfinite(pts)) or (pts.size and float(np.abs(pts).max()) > _MAX_ABS):
-        raise ValueError("path points must be finite and within ±1e9")
+    if not within_wire_bounds(pts):
+        raise ValueError(_OUT_OF_BOUNDS)
     return pts

@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 
 from services.model.geometry import Polyline
 from services.model.kinematics import BodyState, Limits, TruthState, step
+from services.model.limits import RUN_END_BELOW_MPS
 from services.model.scenario import Scenario
 
 
@@ -66,11 +67,7 @@ class CarBody:
         )
 
 
-STANDING_MPS = 0.05
-"""A car slower than this counts as standing (for the end of a run) [m/s]."""
-
-
 def all_at_goal(scenario: Scenario, truths: Iterable[TruthState]) -> bool:
     """Does every car stand at its goal? Ends a run, in either harness."""
     tol = scenario.params.goal_tolerance_m
-    return all(t.s >= scenario.goal_m(t.id) - tol and t.speed <= STANDING_MPS for t in truths)
+    return all(t.s >= scenario.goal_m(t.id) - tol and t.speed <= RUN_END_BELOW_MPS for t in truths)

@@ -5,14 +5,23 @@ in-memory channel with loss, latency and jitter, and every message crossing it
 as bytes through the real codec. Deterministic per seed; far faster than real
 time. Physics runs at ``physics_hz`` (20 Hz), planning, V2X and the RSU at
 ``planning_hz`` (10 Hz).
+
+:meth:`Simulation.run` returns the typed run result
+(``services.model.results.RunResult``); its provenance takes the package
+version, git commit and scenario digest from an ``Origin`` the caller found
+(``services.api.simulate`` does), as this module does no I/O beyond
+:func:`write_trace_csv`. The options refuse what they cannot run:
+``SimOptions(mode="rsu")`` is the rsu mode, ``SimOptions(mode="bogus")`` a
+``ValueError`` naming the modes.
 """
 
 from __future__ import annotations
 
 import csv
 import logging
+import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -22,14 +31,15 @@ from protocol import keys as keyexpr
 from protocol.keys import Stream
 from protocol.messages import Message
 from services.model.kinematics import TruthState
+from services.model.results import ChannelParams, Origin, RunResult
 from services.model.scenario import Scenario
-from services.model.types import Policy, RunMode
+from services.model.types import Policy, RunMode, parse_mode, parse_policy
 from services.rsu.config import rsu_config
 from services.rsu.core import Outgoing, RsuCore
 from services.sim.car import CarBody, all_at_goal
 from services.sim.membus import ChannelModel, MemoryChannel
 from services.sim.metrics import MetricsRecorder
-from services.sim.results import run_result
+from services.sim.results import provenance, run_result
 from services.sim.sensors import perceive
 from services.vehicle.agent import VehicleAgent, vehicle_agent
 from services.vehicle.planner import Reason
@@ -41,7 +51,14 @@ TRACE_FIELDS = ("t", "vehicle", "s", "x", "y", "speed", "accel", "reason", "deta
 
 @dataclass(frozen=True, slots=True)
 class SimOptions:
-    """One in-process run."""
+    """One in-process run.
+
+    ``mode`` and ``policy`` take the enums or their names (``"rsu"``, ``"slot"``)
+    and are stored as the enums; anything else is a ``ValueError`` naming the
+    allowed values. ``seed`` >= 0; ``start_times`` [run s, >= 0] per car override
+    the scenario's draw; ``max_sim_s`` [s, > 0] overrides the scenario's limit;
+    ``trace`` keeps every physics step in ``Simulation.trace_rows``.
+    """
 
     mode: RunMode = RunMode.RSU
     policy: Policy = Policy.PAPER
@@ -50,6 +67,30 @@ class SimOptions:
     start_times: dict[str, float] | None = None  # overrides the scenario's draw
     trace: bool = False
     max_sim_s: float | None = None
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "mode", parse_mode(self.mode))
+        object.__setattr__(self, "policy", parse_policy(self.policy))
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
+            raise ValueError(f"seed must be an int >= 0, got {self.seed!r}")
+        if not isinstance(self.channel, ChannelModel):
+            raise TypeError(f"channel must be a ChannelModel, got {self.channel!r}")
+        if self.max_sim_s is not None and not (
+            _is_number(self.max_sim_s) and math.isfinite(self.max_sim_s) and self.max_sim_s > 0
+        ):
+            raise ValueError(f"max_sim_s must be a finite number > 0, got {self.max_sim_s!r}")
+        if self.start_times is not None:
+            bad = {
+                k: v
+                for k, v in self.start_times.items()
+                if not (_is_number(v) and math.isfinite(v) and v >= 0.0)
+            }
+            if bad:
+                raise ValueError(f"start times must be finite numbers >= 0 [s], got {bad}")
+
+
+def _is_number(value: object) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool)
 
 
 @dataclass(slots=True)
@@ -66,11 +107,16 @@ class Simulation:
     trace_rows: list[tuple[Any, ...]] = field(init=False, default_factory=list)
     counters: dict[str, int] = field(init=False, default_factory=dict)
     on_step: Callable[[float, dict[str, TruthState]], None] | None = None
+    origin: Origin = field(default_factory=Origin)
+    """Version, commit and scenario digest for the result's provenance (found by the caller)."""
 
     def __post_init__(self) -> None:
         sc = self.scenario
         o = self.options
         starts = o.start_times if o.start_times is not None else sc.draw_start_times(o.seed)
+        missing = [v.id for v in sc.vehicles if v.id not in starts]
+        if missing:
+            raise ValueError(f"start_times lacks the car(s) {', '.join(missing)}")
         v2x = o.mode is not RunMode.STANDALONE
         self.bodies = {v.id: CarBody.from_scenario(sc, v.id, starts[v.id]) for v in sc.vehicles}
         self.agents = {v.id: vehicle_agent(sc, v.id, v2x) for v in sc.vehicles}
@@ -111,7 +157,8 @@ class Simulation:
         return [v for v in self.agents if v != sender] + list(self.rsus)
 
     # ------------------------------------------------------------------ loop
-    def run(self) -> dict[str, Any]:
+    def run(self) -> RunResult:
+        """Run to the end (every car at its goal, or the time limit); the run result."""
         sc = self.scenario
         p = sc.params
         o = self.options
@@ -176,32 +223,79 @@ class Simulation:
                 body.step(now, dt, self.agents[vid].command(body.state))
             step += 1
         wall = time.perf_counter() - wall0
-        extra = {
-            "scenario": sc.name,
-            "loss": o.channel.loss,
-            "start_times": {vid: round(b.start_time, 4) for vid, b in self.bodies.items()},
-            "harness": "in-process",
-            "speedup_vs_real_time": round(now / wall, 1) if wall > 0 else None,
-        }
-        policy = str(o.policy) if o.mode is RunMode.RSU else None
+        channel = ChannelParams(
+            kind="memory",
+            loss=o.channel.loss,
+            latency_s=o.channel.latency_s,
+            jitter_s=o.channel.jitter_s,
+        )
         return run_result(
             self.metrics.result(),
             mode=o.mode,
-            policy=policy,
+            policy=o.policy if o.mode is RunMode.RSU else None,
             seed=o.seed,
             sim_s=now,
             wall_s=wall,
-            extra=extra,
+            scenario=sc.name,
+            start_times={vid: b.start_time for vid, b in self.bodies.items()},
+            harness="in-process",
+            provenance=provenance(sc, self.origin, channel, o.mode, o.policy),
+            loss=o.channel.loss,
         )
 
     def write_trace(self, path: Path) -> None:
         """The per-tick table as CSV (pandas reads it as is)."""
-        with path.open("w", newline="") as fh:
-            w = csv.writer(fh)
-            w.writerow(TRACE_FIELDS)
-            w.writerows(self.trace_rows)
+        write_trace_csv(path, self.trace_rows)
 
 
-def simulate(scenario: Scenario, options: SimOptions) -> dict[str, Any]:
+def simulate(scenario: Scenario, options: SimOptions, origin: Origin | None = None) -> RunResult:
     """One in-process run; the run result of DESIGN.md."""
-    return Simulation(scenario, options).run()
+    return Simulation(scenario, options, origin=origin or Origin()).run()
+
+
+def write_trace_csv(path: Path, rows: Sequence[Sequence[Any]]) -> None:
+    """Trace rows as CSV with the :data:`TRACE_FIELDS` header (``crosspath sim --trace``)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(TRACE_FIELDS)
+        w.writerows(rows)
+
+
+def harness_trace(
+    fields: Sequence[str], rows: Sequence[Sequence[Any]]
+) -> list[tuple[float | str, ...]]:
+    """Trace rows with other columns (e.g. the monitor's ``trace``) as rows of
+    :data:`TRACE_FIELDS`, matched by name. A missing ``accel`` [m/s²] is the speed's
+    backward difference per car (0 at a car's first row); a missing ``detail``,
+    ``reason`` or ``mode`` is empty. ``ValueError`` when ``t``, ``vehicle``, ``s``,
+    ``x``, ``y`` or ``speed`` is missing."""
+    col = {name: i for i, name in enumerate(fields)}
+    need = [name for name in ("t", "vehicle", "s", "x", "y", "speed") if name not in col]
+    if need:
+        raise ValueError(f"trace lacks the column(s) {', '.join(need)}")
+    last: dict[str, tuple[float, float]] = {}
+    out: list[tuple[float | str, ...]] = []
+    for row in sorted(rows, key=lambda r: (float(r[col["t"]]), str(r[col["vehicle"]]))):
+        t, vid, speed = float(row[col["t"]]), str(row[col["vehicle"]]), float(row[col["speed"]])
+        if "accel" in col:
+            accel = float(row[col["accel"]])
+        else:
+            prev = last.get(vid)
+            accel = (speed - prev[1]) / (t - prev[0]) if prev and t > prev[0] else 0.0
+            last[vid] = (t, speed)
+        out.append(
+            (
+                round(t, 3),
+                vid,
+                round(float(row[col["s"]]), 3),
+                round(float(row[col["x"]]), 3),
+                round(float(row[col["y"]]), 3),
+                round(speed, 3),
+                round(accel, 3),
+                str(row[col["reason"]]) if "reason" in col else "",
+                str(row[col["detail"]]) if "detail" in col else "",
+                str(row[col["mode"]]) if "mode" in col else "",
+            )
+        )
+    return out

@@ -53,11 +53,10 @@ from services.model.geometry import (
     rect_distances,
 )
 from services.model.kinematics import TruthState
+from services.model.limits import STOP_ARM_ABOVE_MPS, STOP_COUNT_BELOW_MPS
 from services.model.scenario import SAMPLE_STEP_M, Scenario
 
 __all__ = [
-    "ARM_ABOVE_MPS",
-    "STOPPED_BELOW_MPS",
     "CollisionEvent",
     "MetricsRecorder",
     "RunMetrics",
@@ -65,10 +64,6 @@ __all__ = [
     "ZoneVisit",
 ]
 
-STOPPED_BELOW_MPS = 0.1
-"""A car counts as stopped below this speed (m/s)."""
-ARM_ABOVE_MPS = 1.0
-"""A stop counts only after the car has exceeded this speed since the last stop (m/s)."""
 SAME_ENTRY_M = 1.0
 """Two paths entering a zone closer than this (m) share the entry (following, no PET)."""
 _BISECT_ITERS = 30
@@ -294,9 +289,9 @@ class MetricsRecorder:
 
         tr.max_speed = max(tr.max_speed, st.speed)
         at_goal = st.s >= tr.goal - self._tol
-        if st.speed > ARM_ABOVE_MPS:
+        if st.speed > STOP_ARM_ABOVE_MPS:
             tr.armed = True
-        elif st.speed < STOPPED_BELOW_MPS:
+        elif st.speed < STOP_COUNT_BELOW_MPS:
             if tr.armed and not at_goal:
                 tr.stops += 1
             tr.armed = False

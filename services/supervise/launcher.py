@@ -21,11 +21,21 @@ reliable plumbing (``max_links`` 2; see ``deploy/zenoh/README.md``).
 
 Files: each child's stdout and stderr go to ``<run dir>/<node>.log``; the
 monitor writes ``<run dir>/result.json``; ``<run dir>/children.json`` lists the
-children's pids and command lines. The run dir defaults to
-``results/up/<timestamp>/`` (git-ignored).
+children's pids and command lines. The run dir is ``--run-dir``; without it,
+``<OUT>-logs/`` beside ``--json OUT``, and only without both
+``results/up/<timestamp>/`` under the working directory (git-ignored).
 
 :func:`actor_commands` builds the same command lines for other addresses: the
 network lab starts them inside network namespaces.
+
+In Python: :func:`prepare_up` builds one run (nothing started) and
+:meth:`UpRun.execute` runs it and returns an :class:`UpOutcome` with the typed
+run result (``services.model.results.RunResult``); ``services.api.run_daemons``
+and the ``up`` command both use them. ``--trace OUT`` asks the monitor for its
+per-step record of every car's truth and writes it as the CSV of ``crosspath
+sim --trace`` (``services.sim.harness.harness_trace``: ``accel`` is derived
+from the speed and ``detail`` is empty, as the cars do not report them); the
+``--json`` result then carries no trace.
 """
 
 from __future__ import annotations
@@ -39,27 +49,43 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import FrameType
-from typing import IO, Any, Final
+from typing import IO, Final, get_args
 
-from services.model.scenario import Scenario, ScenarioError, load_scenario
-from services.model.types import Policy, RunMode
+from services.edge.args import (
+    non_negative_float,
+    non_negative_int,
+    output_dir,
+    output_file,
+    positive_float,
+    run_speed,
+)
+from services.edge.progress import Ticker
+from services.edge.settings import LogLevel
+from services.model.catalog import resolve_scenario
+from services.model.results import RunResult
+from services.model.scenario import Scenario, load_scenario
+from services.model.types import Policy, RunMode, parse_mode, parse_policy
 
 __all__ = [
     "GRACE_S",
     "Child",
     "Endpoints",
     "Launcher",
+    "UpOutcome",
+    "UpRun",
     "actor_commands",
     "configure",
     "daemon_env",
     "free_ports",
     "loopback_endpoints",
     "node_order",
+    "prepare_up",
     "run",
 ]
 
@@ -77,7 +103,12 @@ MONITOR: Final = "monitor"
 """Node id of the monitor."""
 
 REPO_ROOT: Final = Path(__file__).resolve().parents[2]
-"""The source tree (children import ``services`` from here)."""
+"""The directory holding ``services``: the source tree, or site-packages when installed."""
+
+FROM_SOURCE: Final = (REPO_ROOT / "pyproject.toml").is_file()
+"""Whether ``services`` comes from a source tree rather than an installed package: only then
+do the children need :data:`REPO_ROOT` on ``PYTHONPATH`` (an installed one is already on
+``sys.executable``'s path, and putting site-packages first would shadow the stdlib)."""
 
 TAIL_LINES: Final = 20
 """Lines of a failed child's log printed."""
@@ -125,6 +156,7 @@ def actor_commands(
     prefix: str | None = None,
     python: str = sys.executable,
     zenoh_options: Mapping[str, object] | None = None,
+    trace: bool = False,
 ) -> dict[str, list[str]]:
     """Command lines (argv) of every daemon of one run, in start order (see :func:`node_order`).
 
@@ -133,7 +165,8 @@ def actor_commands(
     started and nothing but the scenario file is read. Start each with
     :func:`daemon_env` and :data:`REPO_ROOT` as working directory (as
     :class:`Launcher` does); ``zenoh_options`` are raw Zenoh settings for every
-    daemon (``crosspath up`` shortens the link lease, :data:`LEASE_MS`). Raises ``ValueError``
+    daemon (``crosspath up`` shortens the link lease, :data:`LEASE_MS`); ``trace`` asks
+    the monitor for the per-step trace in its result. Raises ``ValueError``
     (``ScenarioError`` included) when the scenario is unusable or an endpoint
     is missing.
     """
@@ -144,7 +177,7 @@ def actor_commands(
     missing = [n for n in order if n not in endpoints]
     if missing:
         raise ValueError(f"no endpoints for {', '.join(missing)}")
-    scenario_arg = str(Path(scenario_path).resolve())
+    scenario_arg = str(resolve_scenario(scenario_path).resolve())  # a packaged name too
     rsus = {r.id for r in scenario.rsus}
     commands: dict[str, list[str]] = {}
     for index, node in enumerate(order):
@@ -161,6 +194,8 @@ def actor_commands(
                 argv += ["--max-sim-s", repr(float(max_sim_s))]
             if start_delay_s is not None:
                 argv += ["--start-delay", repr(float(start_delay_s))]
+            if trace:
+                argv += ["--trace"]
         elif node in rsus:
             argv += ["rsu", "--scenario", scenario_arg, "--id", node]
         else:
@@ -219,11 +254,13 @@ def _die_with_parent() -> None:
 
 def daemon_env(base: Mapping[str, str] | None = None) -> dict[str, str]:
     """The environment for a daemon started with :func:`actor_commands`' argv: ``base`` (or
-    ours) with this source tree first on ``PYTHONPATH``, so ``-m services.cli.main``
-    works without an installed package; run it with the source tree as working directory."""
+    ours), from a source tree with that tree first on ``PYTHONPATH`` (:data:`FROM_SOURCE`),
+    so ``-m services.cli.main`` works without an installed package; run it with
+    :data:`REPO_ROOT` as working directory."""
     env = dict(os.environ if base is None else base)
     path = env.get("PYTHONPATH")
-    env["PYTHONPATH"] = str(REPO_ROOT) + (os.pathsep + path if path else "")
+    if FROM_SOURCE:
+        env["PYTHONPATH"] = str(REPO_ROOT) + (os.pathsep + path if path else "")
     env.setdefault("PYTHONUNBUFFERED", "1")
     return env
 
@@ -337,12 +374,17 @@ class Launcher:
         """Start, wait for the monitor (or a crash, timeout, signal), stop everything.
 
         Returns the monitor's exit code, or None when the run was cut short
-        (``notes`` says why). Installs SIGINT/SIGTERM handlers for the duration.
+        (``notes`` says why). Installs SIGINT/SIGTERM handlers for the duration when
+        called from the main thread (Python allows them nowhere else).
         """
-        previous = {
-            signum: signal.signal(signum, self._on_signal)
-            for signum in (signal.SIGINT, signal.SIGTERM)
-        }
+        previous = (
+            {
+                signum: signal.signal(signum, self._on_signal)
+                for signum in (signal.SIGINT, signal.SIGTERM)
+            }
+            if threading.current_thread() is threading.main_thread()
+            else {}
+        )
         try:
             self.start()
             return self._watch(timeout_s)
@@ -394,26 +436,217 @@ class Launcher:
         return out
 
 
+# --------------------------------------------------------------------------- one run
+
+
+@dataclass(frozen=True, slots=True)
+class UpOutcome:
+    """What one run left: the monitor's result (None if it wrote none or it could not be
+    read), the monitor's exit code (None when the run was cut short), the launcher's
+    ``notes`` (why it was cut short, what it killed), the signal that interrupted it
+    (0: none) and the children whose logs are worth showing."""
+
+    run_id: str
+    run_dir: Path
+    result: RunResult | None
+    monitor_code: int | None
+    notes: tuple[str, ...]
+    interrupted: int
+    failed: tuple[Child, ...]
+
+    @property
+    def ok(self) -> bool:
+        """The run completed: a result without ``error``, the monitor exited 0."""
+        return (
+            not self.interrupted
+            and self.monitor_code == 0
+            and self.result is not None
+            and self.result.ok
+        )
+
+    def failure(self) -> str:
+        """Why the run failed, with the last lines of the failed children's logs."""
+        reasons = list(self.notes)
+        if self.result is None:
+            reasons.append("the monitor wrote no result")
+        elif self.result.error is not None:
+            reasons.append(self.result.error)
+        elif self.monitor_code not in (0, None):
+            reasons.append(f"the monitor exited with code {self.monitor_code}")
+        text = "; ".join(reasons) or "the run failed"
+        for child in self.failed:
+            text += f"\n--- {child.node} (exit {child.process.returncode}), last lines of "
+            text += f"{child.log_path}:\n{tail_log(child.log_path)}"
+        return text
+
+
+@dataclass(slots=True)
+class UpRun:
+    """One run prepared by :func:`prepare_up` (commands built, nothing started)."""
+
+    run_id: str
+    run_dir: Path
+    launcher: Launcher
+    timeout_s: float
+    max_sim_s: float
+    speed: float
+    trace: bool
+
+    @property
+    def result_path(self) -> Path:
+        """Where the monitor writes the run result."""
+        return self.run_dir / "result.json"
+
+    def execute(self) -> UpOutcome:
+        """Start every daemon, wait for the run, stop them all; the outcome."""
+        self.result_path.unlink(missing_ok=True)  # never mistake an earlier run's for ours
+        code = self.launcher.run(self.timeout_s)
+        notes = list(self.launcher.notes)
+        result: RunResult | None = None
+        if self.result_path.exists():
+            try:
+                result = RunResult.model_validate_json(self.result_path.read_bytes())
+            except (OSError, ValueError) as exc:
+                notes.append(f"unreadable result {self.result_path}: {str(exc).splitlines()[0]}")
+        if result is not None and self.trace and result.trace_fields and result.trace:
+            from services.sim.harness import TRACE_FIELDS, harness_trace
+
+            result = result.updated(
+                trace_fields=list(TRACE_FIELDS),
+                trace=harness_trace(result.trace_fields, result.trace),
+            )
+        failed = [
+            c
+            for c in self.launcher.failed_children(code)
+            if not (c.node == self.launcher.monitor and result is not None)
+        ]
+        return UpOutcome(
+            self.run_id,
+            self.run_dir,
+            result,
+            code,
+            tuple(notes),
+            self.launcher.interrupted,
+            tuple(failed),
+        )
+
+
+def prepare_up(
+    scenario_path: str | os.PathLike[str],
+    mode: RunMode | str = RunMode.RSU,
+    policy: Policy | str = Policy.PAPER,
+    seed: int = 0,
+    speed: float = 1.0,
+    *,
+    run_dir: Path | None = None,
+    timeout_s: float | None = None,
+    max_sim_s: float | None = None,
+    start_delay_s: float = 1.0,
+    log_level: str = "INFO",
+    trace: bool = False,
+) -> UpRun:
+    """One ``crosspath up`` run over loopback, ready to :meth:`~UpRun.execute`.
+
+    ``run_dir`` defaults to ``results/up/<time>-<id>``; ``timeout_s`` [wall s] to
+    ``max_sim_s / speed + 60``. Raises ``ValueError`` (``ScenarioError`` included)
+    for bad arguments, before anything starts.
+    """
+    run_mode, run_policy = parse_mode(mode), parse_policy(policy)
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise ValueError(f"seed must be an int >= 0, got {seed!r}")
+    if not 0.0 < speed <= 1000.0:
+        raise ValueError(f"speed must be in (0, 1000], got {speed!r}")
+    if timeout_s is not None and not 0.0 < timeout_s < float("inf"):
+        raise ValueError(f"timeout must be a finite number > 0 [s], got {timeout_s!r}")
+    if max_sim_s is not None and not 0.0 < max_sim_s < float("inf"):
+        raise ValueError(f"max_sim_s must be a finite number > 0 [s], got {max_sim_s!r}")
+    if not 0.0 <= start_delay_s <= 3600.0:
+        raise ValueError(f"start delay must be within 0..3600 s, got {start_delay_s!r}")
+    scenario = load_scenario(Path(scenario_path))
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    run_id = f"up-{stamp}-{secrets.token_hex(3)}"
+    out = run_dir if run_dir is not None else Path("results") / "up" / f"{stamp}-{run_id[-6:]}"
+    max_sim = max_sim_s if max_sim_s is not None else scenario.params.max_sim_s
+    timeout = timeout_s if timeout_s is not None else max_sim / speed + 60.0
+    nodes = node_order(scenario, run_mode)
+    commands = actor_commands(
+        Path(scenario_path),
+        run_mode,
+        run_policy,
+        seed,
+        speed,
+        loopback_endpoints(nodes),
+        json_out=out / "result.json",
+        run_id=run_id,
+        max_sim_s=max_sim_s,
+        start_delay_s=start_delay_s,
+        log_level=log_level,
+        zenoh_options={"transport/link/tx/lease": LEASE_MS},
+        trace=trace,
+    )
+    return UpRun(run_id, out, Launcher(commands, out), timeout, max_sim, speed, trace)
+
+
 # --------------------------------------------------------------------------- CLI
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
     """Options of ``crosspath up``."""
-    parser.add_argument("scenario", type=Path, help="scenario file (TOML)")
-    parser.add_argument("--mode", choices=[m.value for m in RunMode], default=RunMode.RSU.value)
-    parser.add_argument("--policy", choices=[p.value for p in Policy], default=Policy.PAPER.value)
-    parser.add_argument("--seed", type=int, default=0, help="seed of the start times")
-    parser.add_argument("--speed", type=float, default=1.0, help="run seconds per wall second")
-    parser.add_argument("--json", type=Path, default=None, help="write the run result here")
+    parser.add_argument("scenario", type=Path, help="TOML file or packaged name")
     parser.add_argument(
-        "--timeout", type=float, default=None, help="wall s (default: max_sim_s / speed + 60)"
+        "--mode",
+        choices=[m.value for m in RunMode],
+        default=RunMode.RSU.value,
+        help="standalone (no V2X), fp-only (future paths), rsu (future paths and the RSU)",
     )
-    parser.add_argument("--max-sim-s", type=float, default=None, help="run time limit [s]")
     parser.add_argument(
-        "--run-dir", type=Path, default=None, help="logs and result (default results/up/<time>)"
+        "--policy",
+        choices=[p.value for p in Policy],
+        default=Policy.PAPER.value,
+        help="the RSU's velocity manager (rsu mode)",
     )
-    parser.add_argument("--start-delay", type=float, default=1.0, help="wall s before run time 0")
-    parser.add_argument("--log-level", default="INFO", help="log level of the daemons")
+    parser.add_argument("--seed", type=non_negative_int, default=0, help="seed of the start times")
+    parser.add_argument(
+        "--speed", type=run_speed, default=1.0, help="run seconds per wall second, up to 1000"
+    )
+    parser.add_argument(
+        "--json", type=output_file, default=None, metavar="OUT", help="write the run result here"
+    )
+    parser.add_argument(
+        "--trace",
+        type=output_file,
+        default=None,
+        metavar="OUT",
+        help="write the per-step CSV here (the columns of sim --trace)",
+    )
+    parser.add_argument(
+        "--timeout",
+        type=positive_float,
+        default=None,
+        help="wall s (default: max_sim_s / speed + 60)",
+    )
+    parser.add_argument(
+        "--max-sim-s",
+        type=positive_float,
+        default=None,
+        help="run time limit [s] (default: the scenario's)",
+    )
+    parser.add_argument(
+        "--run-dir",
+        type=output_dir,
+        default=None,
+        help="logs and result (default: <OUT>-logs beside --json OUT, else results/up/<time>)",
+    )
+    parser.add_argument(
+        "--start-delay", type=non_negative_float, default=1.0, help="wall s before run time 0"
+    )
+    parser.add_argument(
+        "--log-level",
+        type=str.upper,
+        choices=list(get_args(LogLevel)),
+        default="INFO",
+        help="log level of the daemons",
+    )
 
 
 def _fail(message: str) -> int:
@@ -425,66 +658,61 @@ def run(args: argparse.Namespace) -> int:
     """One run over Zenoh on loopback; 0 when it completed, 1 when it failed, 130/143 when
     interrupted, 2 on bad arguments."""
     from services.daemons.monitor import format_network
+    from services.sim.harness import write_trace_csv
     from services.sim.results import format_summary
 
+    run_dir: Path | None = args.run_dir
+    if run_dir is None and args.json is not None:  # beside the result asked for, not ./results
+        run_dir = args.json.with_name(f"{args.json.stem}-logs")
     try:
-        scenario = load_scenario(args.scenario)
-    except ScenarioError as exc:
+        up = prepare_up(
+            args.scenario,
+            args.mode,
+            args.policy,
+            args.seed,
+            args.speed,
+            run_dir=run_dir,
+            timeout_s=args.timeout,
+            max_sim_s=args.max_sim_s,
+            start_delay_s=args.start_delay,
+            log_level=args.log_level,
+            trace=args.trace is not None,
+        )
+    except ValueError as exc:  # ScenarioError included
         return _fail(str(exc))
-    if not (args.speed > 0 and args.speed <= 1000):
-        return _fail(f"--speed must be in (0, 1000], got {args.speed}")
-    if args.seed < 0:
-        return _fail(f"--seed must be >= 0, got {args.seed}")
-    mode = RunMode(args.mode)
-    stamp = time.strftime("%Y%m%d-%H%M%S")
-    run_id = f"up-{stamp}-{secrets.token_hex(3)}"
-    run_dir: Path = args.run_dir or Path("results") / "up" / f"{stamp}-{run_id[-6:]}"
-    result_path = run_dir / "result.json"
-    max_sim = args.max_sim_s if args.max_sim_s is not None else scenario.params.max_sim_s
-    timeout = args.timeout if args.timeout is not None else max_sim / args.speed + 60.0
-    nodes = node_order(scenario, mode)
-    commands = actor_commands(
-        args.scenario,
-        mode,
-        args.policy,
-        args.seed,
-        args.speed,
-        loopback_endpoints(nodes),
-        json_out=result_path,
-        run_id=run_id,
-        max_sim_s=args.max_sim_s,
-        start_delay_s=args.start_delay,
-        log_level=args.log_level,
-        zenoh_options={"transport/link/tx/lease": LEASE_MS},
-    )
-    launcher = Launcher(commands, run_dir)
-    print(f"crosspath up: run {run_id}, {len(nodes)} processes, logs in {run_dir}", flush=True)
-    code = launcher.run(timeout)
-    for note in launcher.notes:
+    launcher = up.launcher
+    n_nodes = len(launcher.commands)
+    print(f"crosspath up: run {up.run_id}, {n_nodes} processes, logs in {up.run_dir}", flush=True)
+
+    def status() -> str:
+        running = sum(1 for c in list(launcher.children.values()) if c.process.returncode is None)
+        wall = up.max_sim_s / up.speed  # fits an 80-column terminal
+        return (
+            f"{running}/{n_nodes} running, run <= {wall:.0f} s wall, timeout {up.timeout_s:.0f} s"
+        )
+
+    with Ticker("crosspath up", status):
+        outcome = up.execute()
+    for note in outcome.notes:
         print(f"crosspath up: {note}", file=sys.stderr)
-    result: dict[str, Any] | None = None
-    if result_path.exists():
-        with contextlib.suppress(OSError, ValueError):
-            result = json.loads(result_path.read_text())
+    result = outcome.result
     if result is not None:
         print(format_summary(result))
-        print(format_network(result.get("network", {})))
+        print(format_network(result.network))
+        if args.trace is not None:
+            write_trace_csv(args.trace, result.trace or [])
         if args.json is not None:
             args.json.parent.mkdir(parents=True, exist_ok=True)
-            args.json.write_text(json.dumps(result, indent=2) + "\n")
-        if result.get("error"):
-            print(f"crosspath up: run failed: {result['error']}", file=sys.stderr)
-    for child in launcher.failed_children(code):
-        if child.node == launcher.monitor and result is not None:
-            continue  # its result was printed above
+            args.json.write_text(result.without_trace().to_json() + "\n")
+        if result.error is not None:
+            print(f"crosspath up: run failed: {result.error}", file=sys.stderr)
+    for child in outcome.failed:
         rc = child.process.returncode
         tail = tail_log(child.log_path)
         print(
             f"--- {child.node} (exit {rc}), last lines of {child.log_path}:\n{tail}",
             file=sys.stderr,
         )
-    if launcher.interrupted:
-        return 128 + launcher.interrupted
-    if code == 0 and result is not None and not result.get("error"):
-        return 0
-    return 1
+    if outcome.interrupted:
+        return 128 + outcome.interrupted
+    return 0 if outcome.ok else 1

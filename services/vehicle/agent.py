@@ -32,27 +32,22 @@ from protocol.messages import (
     RsuBeacon,
 )
 from services.model.kinematics import BodyState, Limits, TruthState
-from services.model.scenario import Scenario
-from services.vehicle.coordination import Event, next_mode
+from services.model.scenario import Scenario, VehicleParams
+from services.vehicle.coordination import VehicleEvent, next_mode
 from services.vehicle.future_path import future_path_points
 from services.vehicle.planner import AutonomousPlanner, Coordination, Plan, Reason
 from services.vehicle.profile import FloatArray
 
 log = logging.getLogger("crosspath.vehicle")
 
-CONTROL_LOOKAHEAD_S = 0.3
-"""The controller tracks the planned speed this far ahead (≈ the actuator lag) [s]."""
-
-CONTROL_TIME_CONSTANT_S = 0.4
-"""Speed error → acceleration command gain is 1 / this [1/s]."""
-
-FP_STALE_S = 0.5
-"""Received future paths older than this are forgotten [s] (as the RSU's table)."""
+# The controller's look-ahead and time constant and the future-path staleness are the
+# scenario's [vehicle_params] (services.model.scenario.VehicleParams), in ``AgentSpec.params``.
 
 
 @dataclass(frozen=True, slots=True)
-class VehicleSpec:
-    """One car of a scenario: what its agent needs to know about itself."""
+class AgentSpec:
+    """One car as its agent sees itself: resolved goal and limits (the scenario file's
+    ``[[vehicles]]`` entry is ``services.model.scenario.VehicleSpec``)."""
 
     vehicle_id: str
     route_id: str
@@ -60,11 +55,13 @@ class VehicleSpec:
     length: float
     width: float
     limits: Limits
+    params: VehicleParams = field(default_factory=VehicleParams)
 
 
 @dataclass(frozen=True, slots=True)
-class Outbound:
-    """A message the car sends: the future path broadcast, or an autonomous path to an RSU."""
+class Outgoing:
+    """A message the car sends: the future path broadcast, or an autonomous path to an
+    RSU (the RSU core's counterpart is ``services.rsu.core.Outgoing``)."""
 
     stream: Stream
     message: FuturePath | AutonomousPath
@@ -74,7 +71,7 @@ class Outbound:
 @dataclass(frozen=True, slots=True)
 class TickResult:
     plan: Plan
-    outbound: list[Outbound]
+    outbound: list[Outgoing]
     mode: Mode
     next_deadline: float
 
@@ -93,7 +90,7 @@ class _Coordinated:
 class VehicleAgent:
     """Planner, future-path sender and coordinated mode of one car."""
 
-    spec: VehicleSpec
+    spec: AgentSpec
     scenario: Scenario
     v2x: bool = True
     planner: AutonomousPlanner = field(init=False)
@@ -116,6 +113,7 @@ class VehicleAgent:
             limits=self.spec.limits,
             headway_s=p.headway_s,
             sensor_range_m=p.sensor_range_m,
+            params=self.spec.params,
         )
         self.coordination = _Coordinated()
         self.future_paths = {}
@@ -153,11 +151,11 @@ class VehicleAgent:
                 self._count("cmd_not_mine")
                 return
             if message.command is Command.TERMINATE:
-                event = Event.TERMINATE
+                event = VehicleEvent.TERMINATE
             elif message.mode is Mode.C_SLOW:
-                event = Event.INITIATE_SLOW
+                event = VehicleEvent.INITIATE_SLOW
             else:
-                event = Event.INITIATE_FAST
+                event = VehicleEvent.INITIATE_FAST
             self._apply(now, event, rsu or message.header.sender)
             return
         if isinstance(message, CoordinatedPath):
@@ -172,14 +170,16 @@ class VehicleAgent:
                 # the path implies its mode: a lost initiation is recovered from it
                 self._apply(
                     now,
-                    Event.INITIATE_SLOW if message.mode is Mode.C_SLOW else Event.INITIATE_FAST,
+                    VehicleEvent.INITIATE_SLOW
+                    if message.mode is Mode.C_SLOW
+                    else VehicleEvent.INITIATE_FAST,
                     rsu or message.header.sender,
                 )
             self._follow(now, message)
             return
         self._count("ignored")
 
-    def _apply(self, now: float, event: Event, rsu: str | None) -> None:
+    def _apply(self, now: float, event: VehicleEvent, rsu: str | None) -> None:
         c = self.coordination
         new = next_mode(c.mode, event)
         if new is not c.mode:
@@ -218,8 +218,12 @@ class VehicleAgent:
                 now - c.last_path_at,
             )
             self._count("coordinated_timeout")
-            self._apply(now, Event.TIMEOUT, None)
-        fps = {vid: fp for vid, (fp, rx) in self.future_paths.items() if now - rx <= FP_STALE_S}
+            self._apply(now, VehicleEvent.TIMEOUT, None)
+        fps = {
+            vid: fp
+            for vid, (fp, rx) in self.future_paths.items()
+            if now - rx <= self.spec.params.fp_stale_s
+        }
         for vid in [v for v in self.future_paths if v not in fps]:
             del self.future_paths[vid]
         autonomous = self.planner.plan(now, ego, sensed, fps)
@@ -245,12 +249,12 @@ class VehicleAgent:
                     plan.profile, Reason.COORDINATED, c.mode.name, plan.unyielded, plan.yielding_to
                 )
         self.last_plan = plan
-        out: list[Outbound] = []
+        out: list[Outgoing] = []
         if self.v2x:
-            out.append(Outbound(Stream.FP, self._path_message(FuturePath, now, ego, plan)))
+            out.append(Outgoing(Stream.FP, self._path_message(FuturePath, now, ego, plan)))
             if c.mode is not Mode.AUTO and c.rsu is not None:
                 out.append(
-                    Outbound(
+                    Outgoing(
                         Stream.AP, self._path_message(AutonomousPath, now, ego, autonomous), c.rsu
                     )
                 )
@@ -287,7 +291,7 @@ class VehicleAgent:
         if plan is None:
             return -self.spec.limits.decel_comfort
         prof = plan.profile
-        look = body.s + max(body.v, 0.5) * CONTROL_LOOKAHEAD_S
+        look = body.s + max(body.v, 0.5) * self.spec.params.control_lookahead_s
         v_ref = prof.speed_at(look)
         if prof.speed_at(body.s) <= 1e-3 and v_ref <= 1e-3:
             return -self.spec.limits.decel_emergency if body.v > 0.0 else 0.0
@@ -295,20 +299,21 @@ class VehicleAgent:
         step = 0.5
         v_next = prof.speed_at(look + step)
         a_ff = (v_next * v_next - v_ref * v_ref) / (2.0 * step)
-        return a_ff + (v_ref - body.v) / CONTROL_TIME_CONSTANT_S
+        return a_ff + (v_ref - body.v) / self.spec.params.control_time_constant_s
 
 
 def vehicle_agent(scenario: Scenario, vehicle_id: str, v2x: bool) -> VehicleAgent:
     """The pure autonomy stack of one car (shared with the vehicle daemon)."""
     spec = scenario.vehicle(vehicle_id)
     return VehicleAgent(
-        spec=VehicleSpec(
+        spec=AgentSpec(
             vehicle_id=spec.id,
             route_id=spec.route,
             goal_s=scenario.goal_m(vehicle_id),
             length=spec.length_m,
             width=spec.width_m,
             limits=scenario.limits(vehicle_id),
+            params=scenario.vehicle_params(vehicle_id),
         ),
         scenario=scenario,
         v2x=v2x,

@@ -26,7 +26,10 @@ from enum import Enum
 from protocol.messages import Mode
 
 
-class Event(Enum):
+class VehicleEvent(Enum):
+    """What reaches the car's coordinated mode: an RSU's command or path, or a timeout
+    (the RSU's own view of a car is ``services.rsu.modes.RsuEvent``)."""
+
     INITIATE_SLOW = "initiate_slow"
     INITIATE_FAST = "initiate_fast"
     COORDINATED_PATH = "coordinated_path"
@@ -34,26 +37,26 @@ class Event(Enum):
     TIMEOUT = "timeout"
 
 
-TRANSITIONS: dict[tuple[Mode, Event], Mode] = {
-    (Mode.AUTO, Event.INITIATE_SLOW): Mode.C_SLOW,
-    (Mode.AUTO, Event.INITIATE_FAST): Mode.C_FAST,
-    (Mode.AUTO, Event.TERMINATE): Mode.AUTO,
-    (Mode.AUTO, Event.COORDINATED_PATH): Mode.AUTO,
-    (Mode.AUTO, Event.TIMEOUT): Mode.AUTO,
-    (Mode.C_SLOW, Event.INITIATE_SLOW): Mode.C_SLOW,
-    (Mode.C_SLOW, Event.INITIATE_FAST): Mode.C_FAST,
-    (Mode.C_SLOW, Event.COORDINATED_PATH): Mode.C_SLOW,
-    (Mode.C_SLOW, Event.TERMINATE): Mode.AUTO,
-    (Mode.C_SLOW, Event.TIMEOUT): Mode.AUTO,
-    (Mode.C_FAST, Event.INITIATE_FAST): Mode.C_FAST,
-    (Mode.C_FAST, Event.INITIATE_SLOW): Mode.C_SLOW,
-    (Mode.C_FAST, Event.COORDINATED_PATH): Mode.C_FAST,
-    (Mode.C_FAST, Event.TERMINATE): Mode.AUTO,
-    (Mode.C_FAST, Event.TIMEOUT): Mode.AUTO,
+TRANSITIONS: dict[tuple[Mode, VehicleEvent], Mode] = {
+    (Mode.AUTO, VehicleEvent.INITIATE_SLOW): Mode.C_SLOW,
+    (Mode.AUTO, VehicleEvent.INITIATE_FAST): Mode.C_FAST,
+    (Mode.AUTO, VehicleEvent.TERMINATE): Mode.AUTO,
+    (Mode.AUTO, VehicleEvent.COORDINATED_PATH): Mode.AUTO,
+    (Mode.AUTO, VehicleEvent.TIMEOUT): Mode.AUTO,
+    (Mode.C_SLOW, VehicleEvent.INITIATE_SLOW): Mode.C_SLOW,
+    (Mode.C_SLOW, VehicleEvent.INITIATE_FAST): Mode.C_FAST,
+    (Mode.C_SLOW, VehicleEvent.COORDINATED_PATH): Mode.C_SLOW,
+    (Mode.C_SLOW, VehicleEvent.TERMINATE): Mode.AUTO,
+    (Mode.C_SLOW, VehicleEvent.TIMEOUT): Mode.AUTO,
+    (Mode.C_FAST, VehicleEvent.INITIATE_FAST): Mode.C_FAST,
+    (Mode.C_FAST, VehicleEvent.INITIATE_SLOW): Mode.C_SLOW,
+    (Mode.C_FAST, VehicleEvent.COORDINATED_PATH): Mode.C_FAST,
+    (Mode.C_FAST, VehicleEvent.TERMINATE): Mode.AUTO,
+    (Mode.C_FAST, VehicleEvent.TIMEOUT): Mode.AUTO,
 }
 
 
-def next_mode(mode: Mode, event: Event) -> Mode:
+def next_mode(mode: Mode, event: VehicleEvent) -> Mode:
     """The mode after ``event``; every (mode, event) pair is in the table."""
     try:
         return TRANSITIONS[(mode, event)]

@@ -47,7 +47,7 @@ import numpy as np
 from protocol.messages import FuturePath
 from services.model.geometry import Polyline, footprint, visible_mask
 from services.model.kinematics import Limits, TruthState
-from services.model.scenario import Crossing, Scenario
+from services.model.scenario import Crossing, Scenario, VehicleParams
 from services.vehicle.profile import (
     FloatArray,
     SpeedProfile,
@@ -68,23 +68,8 @@ LOOKAHEAD_M = 220.0
 TIE_S = 0.3
 """Arrival times closer than this are a tie, decided by id [s]."""
 
-STOP_MARGIN_M = 0.3
-"""Planned stops aim this far before the line, for the actuator lag [m]."""
-
-CAUTION_SAMPLE_M = 2.0
-"""Spacing of the points sampled along crossing lanes for visibility [m]."""
-
-CREEP_MPS = 1.5
-"""Under caution, past the stop line the car creeps this fast at most, to see [m/s]."""
-
-CREEP_MARGIN_M = 0.5
-"""Creeping stops this far before the conflict zone [m]."""
-
-EMERGENCY_GAP_M = 1.5
-"""Gap kept to a sensed car on the path when braking for it [m]."""
-
-STOPPED_MPS = 0.5
-"""Below this speed a sensed car counts as stopped for prediction [m/s]."""
+# Stop margin, creep speed, caution sampling, emergency gap: the scenario's
+# [vehicle_params] (services.model.scenario.VehicleParams), in ``AutonomousPlanner.params``.
 
 
 class Reason(StrEnum):
@@ -162,6 +147,7 @@ class AutonomousPlanner:
     limits: Limits
     headway_s: float
     sensor_range_m: float
+    params: VehicleParams = field(default_factory=VehicleParams)
     route: Polyline = field(init=False)
     crossings: list[Crossing] = field(init=False)
     _zones: dict[str, FloatArray] = field(init=False)
@@ -201,8 +187,8 @@ class AutonomousPlanner:
                 cap = self._stop_line_cap(s, s0, v0, crossing)
                 if cap is not None:
                     # creep past the line towards the zone, to see round the corner
-                    edge = crossing.s_in - self.length / 2.0 - CREEP_MARGIN_M
-                    creep = np.minimum(CREEP_MPS, stop_cap(s, edge, lim.decel_comfort))
+                    edge = crossing.s_in - self.length / 2.0 - self.params.creep_margin_m
+                    creep = np.minimum(self.params.creep_mps, stop_cap(s, edge, lim.decel_comfort))
                     constraints.append(
                         _Constraint(Reason.CAUTION, np.maximum(cap, creep), crossing.intersection)
                     )
@@ -268,7 +254,10 @@ class AutonomousPlanner:
         instead; if it cannot do that either, it is committed and goes on.
         """
         lim = self.limits
-        for s_stop in (crossing.s_stop - STOP_MARGIN_M, crossing.s_in - self.length / 2.0 - 0.3):
+        for s_stop in (
+            crossing.s_stop - self.params.stop_margin_m,
+            crossing.s_in - self.length / 2.0 - 0.3,
+        ):
             room = s_stop - s0
             if room < -0.3:
                 continue  # already past this point
@@ -297,7 +286,8 @@ class AutonomousPlanner:
         buildings = self.scenario.building_polygons
         for lane in self.scenario.crossing_lanes(self.route_id, crossing.intersection):
             # points along the lane upstream of its zone entry, out to the needed distance
-            d = np.arange(0.0, needed + CAUTION_SAMPLE_M, CAUTION_SAMPLE_M)
+            step = self.params.caution_sample_m
+            d = np.arange(0.0, needed + step, step)
             s_lane = lane.s_in - d
             inside = s_lane >= 0.0
             if not np.any(inside):
@@ -331,7 +321,7 @@ class AutonomousPlanner:
             # a car moving the same way keeps going: allow its stopping distance
             rel = float(np.cos(other.heading - self.route.heading_at(s_obs)))
             extra = other.speed**2 / (2.0 * lim.decel_emergency) if rel > 0.7 else 0.0
-            s_stop = s_obs + extra - self.length / 2.0 - EMERGENCY_GAP_M
+            s_stop = s_obs + extra - self.length / 2.0 - self.params.emergency_gap_m
             if s_stop - ego.s > 60.0:
                 continue
             out.append(

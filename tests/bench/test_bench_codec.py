@@ -78,5 +78,7 @@ def test_cli_writes_json(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> 
 def test_cli_refuses_bad_point_counts() -> None:
     parser = argparse.ArgumentParser()
     bench.configure(parser)
-    assert bench.run(parser.parse_args(["--points", "0"])) == 2
-    assert bench.run(parser.parse_args(["--points", "231"])) == 2
+    for bad in ("0", "231", "x"):  # refused while parsing: exit 2 before any measurement
+        with pytest.raises(SystemExit) as exc:
+            parser.parse_args(["--points", bad])
+        assert exc.value.code == 2

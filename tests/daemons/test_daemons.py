@@ -10,8 +10,12 @@ from __future__ import annotations
 import argparse
 import asyncio
 import io
+import logging
 import math
 import os
+import selectors
+import signal
+import socket
 import subprocess
 import sys
 import time
@@ -30,7 +34,7 @@ from services.daemons.monitor import MonitorConfig, MonitorService
 from services.daemons.rsu import RsuDaemon, RsuDaemonConfig
 from services.daemons.vehicle import VehicleDaemon, VehicleDaemonConfig
 from services.edge.clock import RunClock
-from services.edge.lifecycle import serve
+from services.edge.lifecycle import EXIT_CONFIG, EXIT_FAILED, ServiceExit, serve
 from services.edge.plumbing import (
     MAX_PLUMBING_BYTES,
     PlumbingError,
@@ -54,15 +58,17 @@ from services.edge.settings import CommonDaemonConfig, load_config
 from services.edge.shell import (
     MAX_AGE_S,
     MAX_FUTURE_S,
+    UNREACHABLE_WARN_S,
     DaemonShell,
     RateLimitedLog,
     sleep_until,
 )
-from services.edge.transport import MemoryBus, MemoryTransport
+from services.edge.transport import RELIABLE_QOS, MemoryBus, MemoryTransport
 from services.model.kinematics import TruthState
 from services.model.scenario import Scenario, load_scenario
 from services.model.types import Policy, RunMode
 from services.sim.harness import SimOptions, simulate
+from services.supervise.launcher import free_ports
 
 REPO = Path(__file__).resolve().parents[2]
 PAPER = REPO / "scenarios" / "paper-blind-intersection.toml"
@@ -280,7 +286,9 @@ async def test_shell_counts_garbage_oversized_spoofed_and_stale() -> None:
     peer.close()
 
 
-async def test_a_failing_handler_does_not_escape() -> None:
+async def test_a_failing_handler_is_a_bug_logged_counted_and_raised_later(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
     bus = MemoryBus()
     shell = DaemonShell(
         config(VehicleDaemonConfig, node_id="B", scenario=str(PAPER)), "test", MemoryTransport(bus)
@@ -292,14 +300,35 @@ async def test_a_failing_handler_does_not_escape() -> None:
         calls.append(1)
         raise RuntimeError("core bug")
 
+    def bad_plumbing(key: str, payload: bytes) -> None:
+        if payload == b"peer":
+            raise PlumbingError("a peer's mistake")
+        raise KeyError("our bug")
+
     shell.subscribe_v2x(keyexpr.all_future_paths(), Stream.FP, boom)
+    shell.subscribe_plumbing("crosspath/sim/truth/*", bad_plumbing)
     shell.begin_run("run-1", time.time(), 1.0)
-    shell.publish_v2x(keyexpr.future_path("B"), future_path("B", 0.0))
-    shell.publish_v2x(keyexpr.future_path("B"), future_path("B", 0.0, seq=2))
-    await asyncio.sleep(0.05)
-    assert len(calls) == 2
+    peer = MemoryTransport(bus)
+    peer.open()
+    with caplog.at_level(logging.DEBUG, logger="crosspath"):
+        peer.publish(truth_key("A"), b"peer", RELIABLE_QOS)
+        await asyncio.sleep(0.05)
+        assert shell.plumbing_malformed == 1 and shell.fault is None  # counted, not a bug
+        shell.publish_v2x(keyexpr.future_path("B"), future_path("B", 0.0))
+        shell.publish_v2x(keyexpr.future_path("B"), future_path("B", 0.0, seq=2))
+        peer.publish(truth_key("A"), b"ours", RELIABLE_QOS)
+        await asyncio.sleep(0.05)
+    assert len(calls) == 2 and shell.internal_errors == 3
+    assert shell.faulted.is_set() and shell.fault is not None and "core bug" in shell.fault
+    traced = [r for r in caplog.records if r.exc_info]
+    assert len(traced) == 1 and isinstance(traced[0].exc_info[1], RuntimeError)
+    assert shell.stats_report(final=False).snapshot["internal_errors"] == 3
+    with pytest.raises(ServiceExit, match="core bug") as info:
+        shell.raise_fault()
+    assert info.value.exit_code == EXIT_FAILED
     assert shell.stats.stream("fp").msgs_tx == 2
     await shell.close()
+    peer.close()
 
 
 async def test_publish_counts_encoded_bytes_and_final_report() -> None:
@@ -415,7 +444,7 @@ def test_example_configs_load(
     name: str, model: type[VehicleDaemonConfig | RsuDaemonConfig | MonitorConfig]
 ) -> None:
     cfg = load_config(model, REPO / "deploy" / "examples" / name, {}, env={})
-    scenario = load_scenario(REPO / cfg.scenario)
+    scenario = load_scenario(cfg.scenario)  # a packaged scenario, by name
     ids = {v.id for v in scenario.vehicles} | {r.id for r in scenario.rsus} | {"monitor"}
     assert cfg.node_id in ids
     assert cfg.zenoh.multicast_scouting is False and cfg.zenoh.max_links == 2
@@ -437,6 +466,79 @@ def test_config_error_of_a_real_daemon_process(tmp_path: Path) -> None:
     assert "crosspath vehicle: config error: speed_limit: Extra inputs are not permitted" in (
         proc.stderr
     )
+
+
+# --------------------------------------------------------------------------- endpoints
+
+
+def _rsu_process(tmp_path: Path, zenoh: str) -> subprocess.Popen[str]:
+    """``crosspath rsu`` as a process, its ``[zenoh]`` table ``zenoh``."""
+    path = tmp_path / "rsu.toml"
+    path.write_text(f'node_id = "rsu1"\nscenario = "{PAPER}"\n[zenoh]\n{zenoh}\n')
+    return subprocess.Popen(
+        [sys.executable, "-m", "services.cli.main", "rsu", "--config", str(path)],
+        cwd=REPO,
+        env={**os.environ, "PYTHONPATH": str(REPO)},
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+
+@pytest.mark.daemons
+@pytest.mark.parametrize(
+    ("endpoint", "reason"),
+    [
+        ("in use", "Address already in use"),
+        ("tcp/999.1.1.1:7447", "failed to lookup address information"),
+        ("foo/1.2.3.4:1", "Unicast not supported for foo protocol"),
+    ],
+)
+def test_an_endpoint_that_cannot_be_opened_is_one_line_and_exit_78(
+    tmp_path: Path, endpoint: str, reason: str
+) -> None:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        if endpoint == "in use":
+            endpoint = f"tcp/127.0.0.1:{busy.getsockname()[1]}"
+        proc = _rsu_process(tmp_path, f'listen = ["{endpoint}"]')
+        _out, err = proc.communicate(timeout=60)
+    assert proc.returncode == EXIT_CONFIG == 78, err
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1, err
+    assert "ERROR" in lines[0] and f"cannot listen on {endpoint}: {reason}" in lines[0]
+
+
+@pytest.mark.daemons
+def test_a_peer_with_no_reachable_endpoint_says_so_and_keeps_trying(tmp_path: Path) -> None:
+    ((udp, tcp),) = free_ports(1)
+    nowhere = [f"udp/127.0.0.1:{udp}", f"tcp/127.0.0.1:{tcp}"]
+    proc = _rsu_process(tmp_path, f"connect = {nowhere!r}".replace("'", '"'))
+    try:
+        assert proc.stderr is not None
+        selector = selectors.DefaultSelector()
+        selector.register(proc.stderr, selectors.EVENT_READ)
+        deadline = time.monotonic() + UNREACHABLE_WARN_S + 20.0
+        seen: list[str] = []
+        while not any("WARNING" in line for line in seen):
+            assert time.monotonic() < deadline, seen
+            if selector.select(timeout=0.5):
+                line = proc.stderr.readline()
+                assert line, f"stderr closed: {seen}"
+                seen.append(line.strip())
+        (warning,) = [line for line in seen if "WARNING" in line]
+        assert "no peer reachable after 5 s" in warning and "still trying" in warning
+        assert all(endpoint in warning for endpoint in nowhere)
+        assert proc.poll() is None  # it keeps running (and Zenoh keeps trying)
+        proc.send_signal(signal.SIGTERM)
+        _out, err = proc.communicate(timeout=20)
+        assert proc.returncode == 0, err
+        assert "WARNING" not in err  # one warning only
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
 
 
 # --------------------------------------------------------------------------- whole runs in memory
@@ -486,23 +588,25 @@ async def test_daemons_over_memory_match_the_in_process_harness(mode: RunMode) -
     result = monitor.result
     assert result is not None and monitor.exit_code == 0
     reference = simulate(scenario, SimOptions(mode=mode, seed=1))
-    assert result["harness"] == "daemons" and result["mode"] == str(mode)
-    assert result["collisions"] == 0 and result["all_finished"]
-    assert result["start_times"] == reference["start_times"]
-    for vid, ref in reference["vehicles"].items():
-        got = result["vehicles"][vid]["passing_time_s"]
-        assert got == pytest.approx(ref["passing_time_s"], rel=0.10), vid
-    assert result["sim_s"] == pytest.approx(reference["sim_s"], abs=2.0)
-    network = result["network"]
-    fp = network["fp"]
+    assert result.harness == "daemons" and result.mode is mode
+    assert result.collisions == 0 and result.all_finished
+    assert result.start_times == reference.start_times
+    for vid, ref in reference.vehicles.items():
+        got = result.vehicles[vid].passing_time_s
+        assert got == pytest.approx(ref.passing_time_s, rel=0.10), vid
+    assert result.sim_s == pytest.approx(reference.sim_s, abs=2.0)
+    network = result.network
+    assert network is not None
+    fp = network.stream("fp")
+    assert fp is not None
     receivers = 1 if mode is RunMode.FP_ONLY else 2
     # the memory bus loses nothing: what was not received was dropped as stale (a stalled loop)
-    assert fp["msgs_rx"] + fp["dropped_stale"] == fp["msgs"] * receivers
-    assert fp["delivery_ratio"] > 0.9 and fp["malformed"] == 0
-    assert network["fp"]["msgs"] > 0 and network["total_kbps_per_vehicle"] > 0
+    assert fp.msgs_rx + fp.dropped_stale == fp.msgs * receivers
+    assert fp.delivery_ratio is not None and fp.delivery_ratio > 0.9 and fp.malformed == 0
+    assert fp.msgs > 0 and network.total_kbps_per_vehicle > 0
     streams = {"fp", "ap", "cmd", "beacon"} if mode is RunMode.RSU else {"fp"}
-    assert streams <= set(network)
-    assert result["truth"]["gaps"] == 0
+    assert streams <= set(network.streams)
+    assert result.truth is not None and result.truth.gaps == 0
 
 
 async def test_standalone_run_sends_no_v2x() -> None:
@@ -510,6 +614,7 @@ async def test_standalone_run_sends_no_v2x() -> None:
     monitor = await run_in_memory(scenario, RunMode.STANDALONE, speed=20.0)
     result = monitor.result
     assert result is not None
-    assert result["policy"] is None and result["all_finished"]
-    assert set(result["network"]) == {"total_kbps_per_vehicle"}
-    assert result["network"]["total_kbps_per_vehicle"] == 0.0
+    assert result.policy is None and result.all_finished
+    assert result.network is not None and result.network.streams == {}
+    assert result.network.total_kbps_per_vehicle == 0.0
+    assert set(result.to_dict()["network"]) == {"total_kbps_per_vehicle"}

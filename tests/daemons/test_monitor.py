@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import asyncio
+import hashlib
 import json
+import logging
 from pathlib import Path
 from typing import Any
 
@@ -18,7 +20,7 @@ from services.daemons.monitor import (
     network_summary,
     new_run_id,
 )
-from services.edge.lifecycle import serve
+from services.edge.lifecycle import EXIT_FAILED, serve
 from services.edge.plumbing import (
     StartRun,
     StatsReport,
@@ -33,8 +35,10 @@ from services.edge.plumbing import (
 )
 from services.edge.settings import ConfigError
 from services.edge.transport import RELIABLE_QOS, MemoryBus, MemoryTransport, Subscription
+from services.model.results import NetworkSection, TruthCounts
 from services.model.scenario import load_scenario
 from services.model.types import RunMode
+from services.sim.truth import MonitorCore
 from tests.daemons.test_daemons import PAPER, config, truth, wait_for
 
 
@@ -144,18 +148,25 @@ async def test_monitor_runs_records_and_builds_the_result(tmp_path: Path) -> Non
     assert mon.exit_code == 0 and mon.failure is None
     result = mon.result
     assert result is not None
-    assert json.loads(out.read_text()) == result
-    assert result["harness"] == "daemons" and result["run_id"] == "run-42"
-    assert result["sim_s"] == pytest.approx(0.5) and result["end_reason"].startswith("max_sim_s")
-    assert result["truth"] == {"steps": 11, "gaps": 0, "late": 0}
-    assert set(result["vehicles"]) == {"A", "B"} and result["collisions"] == 0
-    fp = result["network"]["fp"]
-    assert (fp["msgs"], fp["bytes"], fp["msgs_rx"]) == (10, 1000, 20)
-    assert fp["delivery_ratio"] == pytest.approx(1.0)  # 10 sent x 2 receivers each
-    assert fp["kbps_per_vehicle"] == pytest.approx(1000 * 8 / 1000 / 0.5 / 2)
-    assert fp["latency_ms_p50"] == pytest.approx(2.0, rel=0.05)
-    assert result["network"]["total_kbps_per_vehicle"] == pytest.approx(fp["kbps_per_vehicle"])
-    assert sorted(result["final_stats"]) == ["A", "B", "rsu1"]
+    assert json.loads(out.read_text()) == result.to_dict()
+    assert result.harness == "daemons" and result.run_id == "run-42"
+    assert result.sim_s == pytest.approx(0.5)
+    assert result.end_reason is not None and result.end_reason.startswith("max_sim_s")
+    assert result.truth == TruthCounts(steps=11, gaps=0, late=0)
+    assert set(result.vehicles) == {"A", "B"} and result.collisions == 0
+    assert result.network is not None
+    fp = result.network.stream("fp")
+    assert fp is not None
+    assert (fp.msgs, fp.bytes, fp.msgs_rx) == (10, 1000, 20)
+    assert fp.delivery_ratio == pytest.approx(1.0)  # 10 sent x 2 receivers each
+    assert fp.kbps_per_vehicle == pytest.approx(1000 * 8 / 1000 / 0.5 / 2)
+    assert fp.latency_ms_p50 == pytest.approx(2.0, rel=0.05)
+    assert result.network.total_kbps_per_vehicle == pytest.approx(fp.kbps_per_vehicle)
+    assert sorted(result.final_stats or []) == ["A", "B", "rsu1"]
+    prov = result.provenance
+    assert prov is not None and prov.channel.kind == "zenoh" and prov.policy == "paper"
+    assert prov.scenario_sha256 == hashlib.sha256(PAPER.read_bytes()).hexdigest()
+    assert set(prov.policy_params) == {"rsu1"}
 
 
 async def test_monitor_fills_a_missing_truth_step_and_fails_on_a_lost_actor() -> None:
@@ -176,7 +187,7 @@ async def test_monitor_fills_a_missing_truth_step_and_fails_on_a_lost_actor() ->
     assert mon.exit_code == 1
     assert mon.failure is not None and mon.failure.startswith("B lost")
     assert actors.stops and actors.stops[-1].reason.startswith("B lost")
-    assert mon.result is not None and mon.result["error"] == mon.failure
+    assert mon.result is not None and mon.result.error == mon.failure
 
 
 async def test_monitor_fails_when_an_actor_never_acknowledges() -> None:
@@ -203,8 +214,49 @@ async def test_stop_signal_aborts_the_run_with_a_partial_result() -> None:
     stop.set()
     assert await asyncio.wait_for(task, 10.0) == 0
     assert mon.exit_code == 1 and mon.result is not None
-    assert mon.result["policy"] is None and "signal" in mon.result["error"]
+    assert mon.result.policy is None and "signal" in (mon.result.error or "")
     assert actors.stops
+
+
+async def started(**fields: object) -> tuple[FakeActors, MonitorService, asyncio.Task[int]]:
+    """A monitor serving on a fresh bus with every actor present, once it sent its start."""
+    bus = MemoryBus()
+    actors = FakeActors(bus, ("A", "B", "rsu1"))
+    actors.open()
+    mon = monitor(bus, **fields)
+    task = asyncio.ensure_future(serve(mon, install_signals=False))
+    await wait_for(lambda: bool(actors.starts))
+    return actors, mon, task
+
+
+async def test_a_bug_in_the_monitor_ends_the_run_and_exits_1(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    def broken(self: MonitorCore, *args: object) -> None:
+        raise KeyError("injected bug")
+
+    monkeypatch.setattr(MonitorCore, "on_truth", broken)
+    actors, mon, task = await started(run_id="run-8", stats_wait_s=0.1)
+    with caplog.at_level(logging.ERROR, logger="crosspath"):
+        actors.truth("run-8", "A", 0, -200.0)
+        assert await asyncio.wait_for(task, 10.0) == EXIT_FAILED
+    traced = [r for r in caplog.records if r.exc_info]
+    assert len(traced) == 1 and isinstance(traced[0].exc_info[1], KeyError)  # type: ignore[index]
+    assert mon.failure == "monitor hit an internal error before the run was over"
+    assert actors.stops and actors.stops[-1].run_id == "run-8"  # the actors were told
+
+
+async def test_a_hostile_truth_report_is_counted_not_raised() -> None:
+    actors, mon, task = await started(run_id="run-6", max_sim_s=0.2, stats_wait_s=0.1)
+    actors.transport.publish(truth_key("A"), b"\x81garbage", RELIABLE_QOS)
+    actors.truth("run-6", "A", 10**9, -200.0)  # a step from the far future
+    await wait_for(lambda: mon.core.truth.counters["future"] == 1)
+    for step in range(6):
+        actors.truth("run-6", "A", step, -200.0 + step * 0.25)
+        actors.truth("run-6", "B", step, -200.0 + step * 0.25)
+    assert await asyncio.wait_for(task, 10.0) == 0
+    assert mon.exit_code == 0 and mon.shell.plumbing_malformed == 1
+    assert mon.next_step == 5 and mon.truth_gaps == 0  # the far step forced nothing
 
 
 def test_network_summary_and_table() -> None:
@@ -214,7 +266,7 @@ def test_network_summary_and_table() -> None:
     section = network_summary([snapshot("A", 10, 0), snapshot("B", 0, 10)], 2, 0, 1.0)
     assert section["fp"]["delivery_ratio"] == pytest.approx(1.0)
     assert section["total_kbps_per_vehicle"] == pytest.approx(4.0)
-    table = format_network(section)
+    table = format_network(NetworkSection.model_validate(section))
     assert table.splitlines()[0].split()[:3] == ["stream", "msgs", "bytes"]
     assert "fp" in table and "total 4.0 kbps per vehicle" in table
 

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import asyncio
+import logging
 import math
 
 import numpy as np
+import pytest
 
 from protocol import (
     Command,
@@ -20,11 +22,12 @@ from protocol import (
 )
 from protocol import keys as keyexpr
 from services.daemons.rsu import TERMINATION_ROUNDS, RsuDaemon, RsuDaemonConfig
-from services.edge.lifecycle import serve
+from services.edge.lifecycle import EXIT_FAILED, serve
 from services.edge.plumbing import StartRun, StopRun, alive_key, control_key, encode_control
 from services.edge.transport import RELIABLE_QOS, V2X_QOS, MemoryBus, MemoryTransport
 from services.model.scenario import load_scenario
 from services.model.types import Policy, RunMode
+from services.rsu.core import RsuCore
 from tests.daemons.test_daemons import PAPER, config, start_message, wait_for
 
 VMAX = 50 / 3.6
@@ -155,3 +158,31 @@ async def test_rsu_counts_garbage_on_its_keys_and_keeps_working() -> None:
         assert math.isclose(h.daemon.shell.stats.stream("fp").msgs_rx, 1)
         h.control(StopRun("run-3"))
         await wait_for(lambda: h.daemon.runs_done == 1)
+
+
+async def test_a_bug_in_the_rsu_core_stops_the_daemon_with_its_traceback(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    def broken(self: RsuCore, *args: object) -> None:
+        raise ValueError("injected bug")  # what the core used to swallow as a WARNING
+
+    monkeypatch.setattr(RsuCore, "_decide", broken)
+    h = Harness()
+    await h.__aenter__()
+    try:
+        h.control(start_message("run-5", RunMode.RSU, speed=5.0))
+        await wait_for(lambda: h.daemon.active is not None)
+        with caplog.at_level(logging.INFO, logger="crosspath"):
+            h.peer.publish(keyexpr.future_path("A"), encode(approaching_fp(h.now())), V2X_QOS)
+            assert h.task is not None
+            assert await asyncio.wait_for(h.task, 10.0) == EXIT_FAILED
+    finally:
+        h.stop.set()
+        h.peer.close()
+    assert h.daemon.shell.internal_errors == 1 and h.daemon.runs_done == 1
+    traced = [r for r in caplog.records if r.exc_info]
+    assert len(traced) == 1 and traced[0].levelno == logging.ERROR
+    assert isinstance(traced[0].exc_info[1], ValueError)  # type: ignore[index]
+    assert "handling a datagram on crosspath/v2x/fp/A failed" in traced[0].getMessage()
+    exits = [r.getMessage() for r in caplog.records if "internal error: " in r.getMessage()]
+    assert len(exits) == 1 and "injected bug" in exits[0]  # the one-line exit, no traceback

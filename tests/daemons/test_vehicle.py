@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import logging
 import math
 import os
 import signal
@@ -21,7 +22,7 @@ from services.daemons.vehicle import (
     VehicleDaemonConfig,
     advance,
 )
-from services.edge.lifecycle import serve
+from services.edge.lifecycle import EXIT_FAILED, serve
 from services.edge.plumbing import (
     StatsReport,
     StopRun,
@@ -46,6 +47,7 @@ from services.edge.transport import (
 from services.model.scenario import load_scenario
 from services.model.types import RunMode
 from services.supervise.launcher import free_ports
+from services.vehicle.agent import VehicleAgent
 from tests.daemons.test_daemons import (
     PAPER,
     config,
@@ -201,6 +203,34 @@ def test_advance_moves_truth_along_its_heading() -> None:
     assert moved.s == pytest.approx(t0.s + 1.0)
     assert advance(t0, 0.9) is t0  # never backwards
     assert advance(t0, 1.0 + MAX_EXTRAPOLATION_S + 0.01) is t0  # too old: as last seen
+
+
+async def test_a_bug_in_the_agent_stops_the_daemon_with_its_traceback(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    def broken(self: VehicleAgent, *args: object) -> None:
+        raise ZeroDivisionError("injected bug")
+
+    monkeypatch.setattr(VehicleAgent, "on_message", broken)
+    h = Harness("A")
+    await h.__aenter__()
+    try:
+        h.control(start_message("run-9", RunMode.FP_ONLY, speed=5.0))
+        await wait_for(lambda: h.daemon.agent is not None)
+        clock = h.daemon.shell.clock
+        assert clock is not None
+        with caplog.at_level(logging.ERROR, logger="crosspath"):
+            h.peer.publish(keyexpr.future_path("B"), encode(future_path("B", clock.now())), V2X_QOS)
+            assert h.task is not None
+            assert await asyncio.wait_for(h.task, 10.0) == EXIT_FAILED
+    finally:
+        h.stop.set()
+        h.peer.close()
+    traced = [r for r in caplog.records if r.exc_info]
+    assert len(traced) == 1 and isinstance(traced[0].exc_info[1], ZeroDivisionError)  # type: ignore[index]
+    # the run was ended and its final stats published, counting the bug
+    final = [s for s in h.stats if s.final and s.run_id == "run-9"]
+    assert final and final[-1].snapshot["internal_errors"] == 1
 
 
 # --------------------------------------------------------------------------- over Zenoh

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from services.edge.lifecycle import EXIT_FAILED, EXIT_OK, serve
+from services.edge.lifecycle import EXIT_CONFIG, EXIT_FAILED, EXIT_OK, ServiceExit, serve
 from services.edge.logs import JsonFormatter, NodeFilter
 
 REPO = Path(__file__).resolve().parents[2]
@@ -87,6 +87,8 @@ class Recorder:
         self.steps.append("startup")
         if self.fail_in == "startup":
             raise RuntimeError("no network")
+        if self.fail_in == "endpoint":
+            raise ServiceExit("cannot listen on tcp/127.0.0.1:1: in use", EXIT_CONFIG)
 
     async def run(self, stop: asyncio.Event) -> None:
         self.steps.append("run")
@@ -116,6 +118,27 @@ async def test_a_failing_step_still_shuts_down(where: str) -> None:
     assert await serve(service, install_signals=False) == EXIT_FAILED
     assert service.steps[-1] == "shutdown"
     assert ("run" in service.steps) is (where == "run")
+
+
+async def test_a_service_exit_is_one_line_and_its_status(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    service = Recorder(fail_in="endpoint")
+    with caplog.at_level(logging.INFO, logger="crosspath"):
+        assert await serve(service, install_signals=False) == EXIT_CONFIG
+    assert service.steps == ["startup", "shutdown"]
+    errors = [r for r in caplog.records if r.levelno >= logging.WARNING]
+    assert [r.getMessage() for r in errors] == ["cannot listen on tcp/127.0.0.1:1: in use"]
+    assert errors[0].exc_info is None  # no traceback
+
+
+async def test_an_unexpected_exception_is_logged_with_its_traceback(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    with caplog.at_level(logging.ERROR, logger="crosspath"):
+        assert await serve(Recorder(fail_in="run"), install_signals=False) == EXIT_FAILED
+    (record,) = [r for r in caplog.records if r.levelno >= logging.ERROR]
+    assert record.exc_info is not None and isinstance(record.exc_info[1], RuntimeError)
 
 
 async def test_a_slow_shutdown_times_out() -> None:

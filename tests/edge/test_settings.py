@@ -205,3 +205,75 @@ def test_settings_are_frozen() -> None:
     config = load_config(CommonDaemonConfig, None, {"node_id": "c"}, env={})
     with pytest.raises(ValueError):
         config.node_id = "d"  # type: ignore[misc]
+
+
+@pytest.mark.parametrize(
+    ("file", "env", "cli", "expected"),
+    [
+        (None, None, None, 1.0),  # the model's default
+        (2.0, None, None, 2.0),
+        (2.0, "3", None, 3.0),  # env beats the file
+        (2.0, "3", 4.0, 4.0),  # the command line beats both
+        (None, "3", 4.0, 4.0),
+        (2.0, None, 4.0, 4.0),
+    ],
+)
+def test_layering_order_of_one_field(
+    tmp_path: Path, file: float | None, env: str | None, cli: float | None, expected: float
+) -> None:
+    path = write(tmp_path, f"[time]\nspeed = {file}\n") if file is not None else None
+    environ = {"CROSSPATH_NODE_ID": "c"} | ({"CROSSPATH_TIME__SPEED": env} if env else {})
+    overrides = {"time.speed": cli} if cli is not None else {}
+    config = load_config(CommonDaemonConfig, path, overrides, env=environ)
+    assert config.time.speed == expected
+
+
+def test_errors_name_the_source_of_the_bad_value(tmp_path: Path) -> None:
+    path = write(tmp_path, 'node_id = "c"\nstats_period_s = -1\n')
+    with pytest.raises(ConfigError) as caught:
+        load_config(CommonDaemonConfig, path, {}, env={})
+    assert caught.value.field == "stats_period_s"
+    assert caught.value.reason.endswith(f"(from {path})")
+    env = {"CROSSPATH_NODE_ID": "c", "CROSSPATH_TIME__SPEED": "0"}
+    with pytest.raises(ConfigError) as caught:
+        load_config(CommonDaemonConfig, path, {"stats_period_s": 1.0}, env=env)
+    assert caught.value.field == "time.speed"
+    assert caught.value.reason.endswith("(from CROSSPATH_TIME__SPEED)")
+    with pytest.raises(ConfigError) as caught:
+        load_config(CommonDaemonConfig, None, {"node_id": "c", "zenoh.listen": ["x"]}, env=env)
+    assert caught.value.field == "zenoh.listen"
+    assert caught.value.reason.endswith("(from the command line)")
+    with pytest.raises(ConfigError) as caught:  # a missing field has no source
+        load_config(CommonDaemonConfig, None, {}, env={})
+    assert caught.value.reason == "Field required"
+
+
+def test_environment_values_parsed_by_pydantic_settings() -> None:
+    env = {
+        "CROSSPATH_NODE_ID": "7",
+        "CROSSPATH_LOG_JSON": "true",
+        "CROSSPATH_TIME__EPOCH_UNIX": "null",
+        "CROSSPATH_ZENOH": '{"mode": "client"}',
+        "CROSSPATH_ZENOH__MAX_LINKS": "3",
+        "CROSSPATH_ZENOH__OPTIONS": '{"transport/link/tx/lease": 3000}',
+    }
+    epoch_env = dict(env, CROSSPATH_TIME__EPOCH_UNIX="12.5")
+    config = load_config(CommonDaemonConfig, None, {}, env=env)
+    assert config.node_id == "7" and config.log_json is True and config.time.epoch_unix is None
+    assert (config.zenoh.mode, config.zenoh.max_links) == ("client", 3)
+    assert config.zenoh.options == {"transport/link/tx/lease": 3000}
+    assert load_config(CommonDaemonConfig, None, {}, env=epoch_env).time.epoch_unix == 12.5
+    with pytest.raises(ConfigError) as caught:
+        load_config(CommonDaemonConfig, None, {}, env=dict(env, CROSSPATH_ZENOH__CONNECT="tcp/a:1"))
+    assert caught.value.field == "CROSSPATH_ZENOH__CONNECT"
+    assert "invalid JSON" in caught.value.reason
+
+
+def test_built_directly_a_config_reads_only_its_arguments(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("CROSSPATH_NODE_ID", "from-env")
+    monkeypatch.setenv("CROSSPATH_TIME__SPEED", "9")
+    config = CommonDaemonConfig(node_id="direct")
+    assert config.node_id == "direct" and config.time.speed == 1.0
+    # load_config with the real environment does read it
+    loaded = load_config(CommonDaemonConfig, None, {})
+    assert loaded.node_id == "from-env" and loaded.time.speed == 9.0

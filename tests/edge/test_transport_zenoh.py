@@ -19,9 +19,11 @@ from services.edge.settings import ZenohSettings
 from services.edge.transport import (
     RELIABLE_QOS,
     V2X_QOS,
+    EndpointError,
     MemoryBus,
     MemoryTransport,
     Qos,
+    TransportConfigError,
     TransportError,
     ZenohTransport,
     keyexpr_matches,
@@ -29,6 +31,7 @@ from services.edge.transport import (
     qos_for_key,
     validate_key,
     zenoh_config,
+    zenoh_reason,
 )
 
 REPO = Path(__file__).resolve().parents[2]
@@ -247,6 +250,56 @@ def test_open_needs_a_loop_and_bad_keys_are_refused() -> None:
         t.close()
     finally:
         loop.close()
+
+
+def test_zenoh_reason_is_one_short_line() -> None:
+    nested = zenoh.ZError(
+        "Can not create a new TCP listener bound to tcp/127.0.0.1:7447: [127.0.0.1:7447: "
+        "Address already in use (os error 98) at /root/.cargo/x/src/tcp.rs:61.] at "
+        "/root/.cargo/y/src/unicast.rs:338."
+    )
+    assert zenoh_reason(nested) == "Address already in use (os error 98)"
+    plain = zenoh.ZError("Unicast not supported for foo protocol at /a/b/lib.rs:183.")
+    assert zenoh_reason(plain) == "Unicast not supported for foo protocol"
+
+
+async def test_an_endpoint_that_cannot_be_opened_is_named() -> None:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        in_use = f"tcp/127.0.0.1:{busy.getsockname()[1]}"
+        fine = f"udp/127.0.0.1:{free_port(socket.SOCK_DGRAM)}"
+        cases = [
+            ({"listen": [fine, in_use]}, "listen", in_use, "in use"),
+            ({"listen": ["foo/1.2.3.4:1"]}, "listen", "foo/1.2.3.4:1", "foo protocol"),
+            ({"listen": ["tcp/127.0.0.1:abc"]}, "listen", "tcp/127.0.0.1:abc", "port"),
+            ({"connect": ["foo/1.2.3.4:1"]}, "connect", "foo/1.2.3.4:1", "foo protocol"),
+        ]
+        for fields, role, endpoint, reason in cases:
+            transport = ZenohTransport(ZenohSettings(**fields))
+            with pytest.raises(EndpointError) as info:
+                transport.open()
+            assert (info.value.role, info.value.endpoint) == (role, endpoint)
+            assert reason in info.value.reason and "\n" not in str(info.value)
+            assert ".rs:" not in str(info.value)
+    with pytest.raises(TransportConfigError, match="invalid Zenoh configuration"):
+        ZenohTransport(ZenohSettings(options={"mode": 5})).open()
+    # a client that reaches no router: not a configuration error (the router may come up)
+    nobody = f"tcp/127.0.0.1:{free_port(socket.SOCK_STREAM)}"
+    with pytest.raises(TransportError) as failed:
+        ZenohTransport(ZenohSettings(mode="client", connect=[nobody])).open()
+    assert not isinstance(failed.value, TransportConfigError)
+    assert nobody in str(failed.value)
+
+
+async def test_a_peer_records_its_connect_endpoints() -> None:
+    nobody = f"tcp/127.0.0.1:{free_port(socket.SOCK_STREAM)}"
+    transport = ZenohTransport(ZenohSettings(connect=[nobody]))
+    transport.open()  # a peer opens without a link and keeps trying
+    try:
+        assert transport.connect_endpoints == [nobody] and transport.links() == []
+    finally:
+        transport.close()
 
 
 def test_zenoh_config_from_settings_and_file(tmp_path: Path) -> None:

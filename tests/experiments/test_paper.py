@@ -243,8 +243,10 @@ def test_trials_use_base_seed_plus_index_and_failures_are_reported(tmp_path: Pat
 
 def test_cli_refuses_bad_arguments(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
     parser = build_parser()
-    args = parser.parse_args(["experiment", "paper", "--trials", "0", "--out", str(tmp_path)])
-    assert args._run(args) == 2
+    with pytest.raises(SystemExit) as exc:  # refused while parsing, before any trial
+        parser.parse_args(["experiment", "paper", "--trials", "0", "--out", str(tmp_path)])
+    assert exc.value.code == 2
+    assert "--trials: must be >= 1" in capsys.readouterr().err
     args = parser.parse_args(
         ["experiment", "paper", "--scenario", str(tmp_path / "nope.toml"), "--out", str(tmp_path)]
     )

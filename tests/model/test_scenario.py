@@ -8,12 +8,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from services.model.kinematics import Limits
+from protocol import FuturePath, Kind, decode, encode, max_points
+from services.model.kinematics import Limits, TruthState
 from services.model.scenario import (
+    FUTURE_PATH_POINTS_MAX,
     Params,
+    RsuParams,
+    RsuParamsOverrides,
     Scenario,
     ScenarioError,
     UniformStart,
+    VehicleParams,
+    VehicleParamsOverrides,
     load_scenario,
     parse_scenario,
 )
@@ -457,3 +463,159 @@ def test_readme_example_parses() -> None:
     (c,) = sc.vehicle_crossings("A")
     assert c.intersection == "X1"
     assert 0.0 <= sc.draw_start_times(3)["A"] <= 2.0
+
+
+# --------------------------------------------------------------------------- what the wire carries
+
+
+def _with_params(extra: str) -> str:
+    """MINIMAL with ``extra`` TOML lines appended to a fresh ``[params]`` table."""
+    return MINIMAL.replace('[scenario]\nname = "m"', f'[scenario]\nname = "m"\n[params]\n{extra}')
+
+
+def test_future_path_points_beyond_the_codec_are_refused_at_load() -> None:
+    """``future_path_points = 300`` used to load and then crash ``crosspath sim`` with an
+    EncodeError; the loader now names the field and the codec's limit."""
+    cap = min(max_points(Kind.FUTURE_PATH), max_points(Kind.AUTONOMOUS_PATH))
+    assert cap == FUTURE_PATH_POINTS_MAX
+    err = _refused(_with_params("future_path_points = 300"))
+    assert err.path == "params.future_path_points", str(err)
+    assert f"at most {cap}" in err.reason and "datagram" in err.reason
+    assert parse_scenario(_with_params(f"future_path_points = {cap}")).params.future_path_points
+
+
+def test_the_most_points_the_loader_accepts_encode() -> None:
+    """The largest accepted future path is sent without an EncodeError."""
+    from services.vehicle.agent import vehicle_agent
+
+    cap = FUTURE_PATH_POINTS_MAX
+    sc = parse_scenario(_with_params(f"future_path_points = {cap}"))
+    agent = vehicle_agent(sc, "A", v2x=True)
+    route = sc.vehicle_route("A")
+    x, y = route.point_at(5.0)  # slow and far from the goal: every point is kept
+    ego = TruthState("A", 0.0, x, y, route.heading_at(5.0), 5.0, 0.0, 5.0, 4.5, 1.8)
+    (out,) = agent.tick(0.0, ego, []).outbound
+    assert out.message.points.shape[0] == cap
+    back = decode(encode(out.message))
+    assert isinstance(back, FuturePath) and back.points.shape == (cap, 3)
+
+
+@pytest.mark.parametrize(
+    ("old", "new", "path", "reason"),
+    [
+        # speeds: v_max x SPEED_CAP_FACTOR must fit the wire's MAX_SPEED_MPS
+        ('name = "m"', 'name = "m"\n[params]\nv_max_mps = 99.0', "params.v_max_mps", "m/s"),
+        (
+            'route = "r1"\nstart_offset_m',
+            'route = "r1"\ndynamics = { v_max_mps = 99.0 }\nstart_offset_m',
+            "vehicles[1].dynamics.v_max_mps",
+            "the wire carries at most 100 m/s",
+        ),
+        # sizes
+        (
+            'route = "r1"\nstart_offset_m',
+            'route = "r1"\nlength_m = 60.0\nstart_offset_m',
+            "vehicles[1].length_m",
+            "0.01..50 m",
+        ),
+        (
+            'route = "r1"\nstart_offset_m',
+            'route = "r1"\nwidth_m = 0.001\nstart_offset_m',
+            "vehicles[1].width_m",
+            "0.01..10 m",
+        ),
+        (
+            "position = [-8.0, 8.0]",
+            "position = [-8.0, 8.0]\ncoverage_m = 2e4",
+            "rsus[0].coverage_m",
+            "10000",
+        ),
+        # coordinates
+        ("center = [0.0, 0.0]", "center = [2e7, 0.0]", "intersections[0].center[0]", "±1e+07 m"),
+        (
+            "points = [[-100.0, -1.75], [100.0, -1.75]]",
+            "points = [[-100.0, -1.75], [1e8, -1.75]]",
+            "routes[0].points[1][0]",
+            "beyond the wire format",
+        ),
+        # time between path points: a standing car's future path spans t_free_s in one step
+        ('name = "m"', 'name = "m"\n[params]\nt_free_s = 70.0', "params.t_free_s", "65.535 s"),
+        # distance between path points, also after the RSU thins a coordinated path
+        (
+            'name = "m"',
+            'name = "m"\n[params]\nv_max_mps = 90.0\nfuture_path_points = 3',
+            "params.future_path_points",
+            "at most 327.67 m between points",
+        ),
+        (
+            'route = "r1"\nstart_offset_m = 20.0',
+            'route = "r1"\nstart_offset_m = 20.0\ndynamics = { v_max_mps = 90.0 }\n'
+            "[params]\nfuture_path_points = 3",
+            "vehicles[1].dynamics.v_max_mps",
+            "327.67 m",
+        ),
+    ],
+)
+def test_what_the_codec_cannot_carry_is_refused(old: str, new: str, path: str, reason: str) -> None:
+    assert old in MINIMAL
+    err = _refused(MINIMAL.replace(old, new, 1))
+    assert err.path == path, str(err)
+    assert reason in err.reason, str(err)
+
+
+# --------------------------------------------------------------------------- RSU and vehicle knobs
+
+
+def test_cross_field_nonsense_is_refused_with_the_field_path() -> None:
+    err = _refused(_with_params("t_collision_s = 12.0"))
+    assert err.path == "params.t_collision_s" and "t_free_s (10.0 s)" in err.reason
+    err = _refused(_with_params("t_free_s = 4.0"))
+    assert err.path == "params.t_collision_s" and "t_free_s (4.0 s)" in err.reason
+    # slot_min_speed_mps must stay below v_max, from the shared table or the RSU's own
+    text = MINIMAL + "\n[rsu_params]\nslot_min_speed_mps = 14.0\n"
+    err = _refused(text)
+    assert err.path == "rsu_params.slot_min_speed_mps" and "v_max_mps" in err.reason
+    text = MINIMAL + "params = { slot_min_speed_mps = 20.0 }\n"
+    err = _refused(text)
+    assert err.path == "rsus[0].params.slot_min_speed_mps", str(err)
+    # hold points every 2 headways or more could let a crossing point through unseen
+    err = _refused(MINIMAL + "params = { hold_step_s = 2.0 }\n")
+    assert err.path == "rsus[0].params.hold_step_s" and "headway" in err.reason
+    # a crawl so slow that consecutive coordinated points are more than 65.535 s apart
+    err = _refused(MINIMAL + "\n[rsu_params]\nslot_min_speed_mps = 0.01\n")
+    assert err.path == "rsu_params.slot_min_speed_mps" and "65.535 s" in err.reason
+
+
+def test_rsu_params_defaults_and_overrides() -> None:
+    sc = parse_scenario(MINIMAL)
+    assert sc.spec.rsu_params == RsuParams() and sc.rsu_params("rsu1") == RsuParams()
+    sc = parse_scenario(
+        MINIMAL
+        + "params = { hold_step_s = 0.25 }\n\n[rsu_params]\nhold_step_s = 0.4\nstop_gap_m = 3.0\n"
+    )
+    knobs = sc.rsu_params("rsu1")
+    assert (knobs.hold_step_s, knobs.stop_gap_m) == (0.25, 3.0)  # the RSU's own key wins
+    assert sc.spec.rsu_params.hold_step_s == 0.4
+    with pytest.raises(KeyError):
+        sc.rsu_params("nope")
+
+
+def test_override_tables_have_the_fields_of_their_table() -> None:
+    assert set(RsuParamsOverrides.model_fields) == set(RsuParams.model_fields)
+    assert set(VehicleParamsOverrides.model_fields) == set(VehicleParams.model_fields)
+    assert RsuParamsOverrides().model_dump() == dict.fromkeys(RsuParams.model_fields)
+
+
+def test_vehicle_params_defaults_and_overrides() -> None:
+    sc = parse_scenario(MINIMAL)
+    assert sc.vehicle_params("A") == VehicleParams() == sc.spec.vehicle_params
+    text = MINIMAL.replace(
+        'id = "B"\nroute = "r1"', 'id = "B"\nroute = "r1"\nparams = { creep_mps = 0.5 }'
+    )
+    sc = parse_scenario(text + "\n[vehicle_params]\ncreep_mps = 1.0\nfp_stale_s = 0.8\n")
+    assert (sc.vehicle_params("A").creep_mps, sc.vehicle_params("B").creep_mps) == (1.0, 0.5)
+    assert sc.vehicle_params("B").fp_stale_s == 0.8
+    err = _refused(text.replace("creep_mps = 0.5", "creep_mps = 0.0"))
+    assert err.path == "vehicles[1].params.creep_mps"
+    err = _refused(MINIMAL + "\n[vehicle_params]\nwarp = 1\n")
+    assert err.path == "vehicle_params.warp" and err.reason == "unknown key"

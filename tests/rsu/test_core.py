@@ -384,8 +384,8 @@ def test_ignored_inputs_are_counted_and_never_raise() -> None:
             "ignored_kind",
         ),
         (fp("A", a_at(6.1), EAST, VMAX, -0.1, Mode.C_FAST, seq=0), None, "stale"),
-        (fp("N", (math.nan, 0.0), EAST, VMAX, 0.1), None, "invalid"),
-        (fp("S", (0.0, -10.0), NORTH, -3.0, 0.1), None, "invalid"),
+        (fp("N", (math.nan, 0.0), EAST, VMAX, 0.1), None, "invalid_not_finite"),
+        (fp("S", (0.0, -10.0), NORTH, -3.0, 0.1), None, "invalid_negative"),
     ]
     for message, key, counter in cases:
         before = core.counters[counter]
@@ -410,7 +410,70 @@ def test_ignored_inputs_are_counted_and_never_raise() -> None:
     assert core.mode_of("Q") == Mode.AUTO
     assert core.on_message(0.1, ap("Q", (-1.0, 30.0), NORTH, 1.0, 0.1, Mode.AUTO)) == []
     assert core.counters["ap_not_coordinated"] == 1
-    assert core.counters["errors"] == 0
+    assert core.counters["invalid"] == 3 and core.counters["invalid_points_out_of_bounds"] == 1
+
+
+def hostile(problem: str) -> FuturePath:
+    """A future path of car H just south of the zone, spoilt as ``problem`` says."""
+    x, y, speed, points = 1.75, -20.0, 5.0, line((1.75, -20.0), NORTH, 5.0, 0.1)
+    sender = "H"
+    if problem == "not_finite":
+        speed = math.inf
+    elif problem == "negative":
+        speed = -1.0
+    elif problem == "no_sender":
+        sender = ""
+    elif problem == "out_of_bounds":
+        y = -1e12
+    elif problem == "points_out_of_bounds":
+        points = points.copy()
+        points[5, 0] = 1e12
+    path = FuturePath(Header(sender, 1, 100_000), x, y, speed, NORTH, 4.5, 1.8, Mode.AUTO, points)
+    if problem == "points_shape":  # the message itself always reshapes to (N, 3)
+        object.__setattr__(path, "points", points[:, :2])
+    return path
+
+
+@pytest.mark.parametrize(
+    "problem",
+    [
+        "not_finite",
+        "negative",
+        "no_sender",
+        "out_of_bounds",
+        "points_shape",
+        "points_out_of_bounds",
+    ],
+)
+def test_a_hostile_path_is_counted_and_dropped(problem: str) -> None:
+    core = RsuCore(config())
+    core.on_message(0.0, fp("A", a_at(6.0), EAST, VMAX, 0.0))
+    before = dict(core.counters)
+    assert core.on_message(0.1, hostile(problem)) == []
+    assert core.counters[f"invalid_{problem}"] == 1 and core.counters["invalid"] == 1
+    assert set(core.table) == {"A"} and set(core.modes()) == {"A"}
+    changed = {k for k in core.counters if core.counters[k] != before.get(k, 0)}
+    assert changed == {"fp_rx", "invalid", f"invalid_{problem}"}
+    # the same car's valid path afterwards is taken
+    core.on_message(0.1, fp("H", (1.75, -20.0), NORTH, 5.0, 0.1))
+    assert "H" in core.table
+
+
+@pytest.mark.parametrize("error", [ValueError("bug"), ZeroDivisionError("bug")])
+def test_a_bug_in_the_decision_code_is_not_swallowed(
+    monkeypatch: pytest.MonkeyPatch, error: Exception
+) -> None:
+    core = RsuCore(config())
+
+    def broken(*args: object) -> list[Outgoing]:
+        raise error
+
+    monkeypatch.setattr(core, "_decide", broken)
+    with pytest.raises(type(error), match="bug"):
+        core.on_message(0.0, fp("A", a_at(6.0), EAST, VMAX, 0.0))
+    monkeypatch.setattr(core.table, "expire", broken)
+    with pytest.raises(type(error), match="bug"):
+        core.tick(0.1)
 
 
 def test_coordinated_paths_are_thinned_to_max_points() -> None:
@@ -574,7 +637,7 @@ def test_full_crossing_sequence(policy: Policy) -> None:
     assert b_term[4] > 3.5  # B terminated past the zone (y)
     assert a_term[0] < b_term[0]
     assert len(changes) <= 6  # no flapping
-    assert core.counters["terminations"] == 2 and core.counters["errors"] == 0
+    assert core.counters["terminations"] == 2 and core.counters["invalid"] == 0
     # safety: A went first and B kept its distance
     a_in, a_out = zone_times(a)
     b_in, _ = zone_times(b)
@@ -606,4 +669,4 @@ def test_full_crossing_survives_message_loss(policy: Policy) -> None:
     assert changes[0][2] == Mode.C_FAST
     assert (second, Mode.C_SLOW) in [(v, m) for _, v, m, _, _ in changes]
     assert zone_times(cars[first])[0] < zone_times(cars[second])[0]
-    assert core.counters["terminations"] >= 2 and core.counters["errors"] == 0
+    assert core.counters["terminations"] >= 2 and core.counters["invalid"] == 0

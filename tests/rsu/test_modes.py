@@ -5,37 +5,37 @@ from __future__ import annotations
 import pytest
 
 from protocol.messages import Mode
-from services.rsu.modes import TRANSITIONS, Action, Event, InvalidTransition, transition
+from services.rsu.modes import TRANSITIONS, Action, InvalidTransition, RsuEvent, transition
 
 A, S, F = Mode.AUTO, Mode.C_SLOW, Mode.C_FAST
 
 EXPECTED = {
-    (A, Event.CONFLICT): (S, Action.SEND_INITIATION_SLOW),
-    (A, Event.FREE_APPROACHING): (F, Action.SEND_INITIATION_FAST),
-    (A, Event.NO_CONFLICT): (A, Action.NONE),
-    (A, Event.LEAVING): (A, Action.NONE),
-    (A, Event.SILENT): (A, Action.FORGET),
-    (S, Event.CONFLICT): (S, Action.NONE),
-    (S, Event.FREE_APPROACHING): (F, Action.SEND_INITIATION_FAST),
-    (S, Event.NO_CONFLICT): (A, Action.SEND_TERMINATION),
-    (S, Event.LEAVING): (A, Action.SEND_TERMINATION),
-    (S, Event.SILENT): (A, Action.FORGET),
-    (F, Event.CONFLICT): (S, Action.SEND_INITIATION_SLOW),
-    (F, Event.FREE_APPROACHING): (F, Action.NONE),
-    (F, Event.NO_CONFLICT): (F, Action.NONE),
-    (F, Event.LEAVING): (A, Action.SEND_TERMINATION),
-    (F, Event.SILENT): (A, Action.FORGET),
+    (A, RsuEvent.CONFLICT): (S, Action.SEND_INITIATION_SLOW),
+    (A, RsuEvent.FREE_APPROACHING): (F, Action.SEND_INITIATION_FAST),
+    (A, RsuEvent.NO_CONFLICT): (A, Action.NONE),
+    (A, RsuEvent.LEAVING): (A, Action.NONE),
+    (A, RsuEvent.SILENT): (A, Action.FORGET),
+    (S, RsuEvent.CONFLICT): (S, Action.NONE),
+    (S, RsuEvent.FREE_APPROACHING): (F, Action.SEND_INITIATION_FAST),
+    (S, RsuEvent.NO_CONFLICT): (A, Action.SEND_TERMINATION),
+    (S, RsuEvent.LEAVING): (A, Action.SEND_TERMINATION),
+    (S, RsuEvent.SILENT): (A, Action.FORGET),
+    (F, RsuEvent.CONFLICT): (S, Action.SEND_INITIATION_SLOW),
+    (F, RsuEvent.FREE_APPROACHING): (F, Action.NONE),
+    (F, RsuEvent.NO_CONFLICT): (F, Action.NONE),
+    (F, RsuEvent.LEAVING): (A, Action.SEND_TERMINATION),
+    (F, RsuEvent.SILENT): (A, Action.FORGET),
 }
 
 
 @pytest.mark.parametrize(("pair", "result"), sorted(EXPECTED.items()))
-def test_every_transition(pair: tuple[Mode, Event], result: tuple[Mode, Action]) -> None:
+def test_every_transition(pair: tuple[Mode, RsuEvent], result: tuple[Mode, Action]) -> None:
     assert transition(*pair) == result
 
 
 def test_table_is_exactly_the_expected_one() -> None:
     assert TRANSITIONS == EXPECTED
-    assert len(TRANSITIONS) == len(Mode) * len(Event)
+    assert len(TRANSITIONS) == len(Mode) * len(RsuEvent)
 
 
 def test_commands_match_the_mode_change() -> None:
@@ -49,7 +49,7 @@ def test_commands_match_the_mode_change() -> None:
         elif action == Action.NONE:
             assert after == mode
         else:
-            assert action == Action.FORGET and _event == Event.SILENT
+            assert action == Action.FORGET and _event == RsuEvent.SILENT
 
 
 @pytest.mark.parametrize(
@@ -57,10 +57,10 @@ def test_commands_match_the_mode_change() -> None:
     [
         (0, 1),  # plain ints would match the IntEnum keys by hash; refused
         (A, 1),
-        (0, Event.CONFLICT),
-        (Event.CONFLICT, A),  # swapped
+        (0, RsuEvent.CONFLICT),
+        (RsuEvent.CONFLICT, A),  # swapped
         ("AUTO", "CONFLICT"),
-        (None, Event.SILENT),
+        (None, RsuEvent.SILENT),
     ],
 )
 def test_invalid_pairs_raise(mode: object, event: object) -> None:
@@ -70,8 +70,8 @@ def test_invalid_pairs_raise(mode: object, event: object) -> None:
 
 def test_pair_missing_from_the_table_raises(monkeypatch: pytest.MonkeyPatch) -> None:
     trimmed = dict(TRANSITIONS)
-    del trimmed[(A, Event.LEAVING)]
+    del trimmed[(A, RsuEvent.LEAVING)]
     monkeypatch.setattr("services.rsu.modes.TRANSITIONS", trimmed)
     with pytest.raises(InvalidTransition, match="AUTO on LEAVING"):
-        transition(A, Event.LEAVING)
+        transition(A, RsuEvent.LEAVING)
     assert issubclass(InvalidTransition, ValueError)

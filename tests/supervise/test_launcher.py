@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import json
 import os
 import signal
@@ -15,7 +16,7 @@ import pytest
 
 from services.model.scenario import load_scenario
 from services.model.types import RunMode
-from services.sim.harness import SimOptions, simulate
+from services.sim.harness import TRACE_FIELDS, SimOptions, simulate
 from services.supervise.launcher import (
     Endpoints,
     actor_commands,
@@ -123,8 +124,9 @@ def test_up_refuses_bad_arguments(tmp_path: Path) -> None:
 
     args = build_parser().parse_args(["up", str(tmp_path / "missing.toml")])
     assert args._run(args) == 2
-    args = build_parser().parse_args(["up", str(PAPER), "--speed", "0"])
-    assert args._run(args) == 2
+    with pytest.raises(SystemExit) as exc:  # refused while parsing, before any process
+        build_parser().parse_args(["up", str(PAPER), "--speed", "0"])
+    assert exc.value.code == 2
 
 
 # --------------------------------------------------------------------------- real runs
@@ -132,10 +134,10 @@ def test_up_refuses_bad_arguments(tmp_path: Path) -> None:
 
 @pytest.mark.daemons
 def test_up_runs_the_paper_scenario_like_the_in_process_harness(tmp_path: Path) -> None:
-    out = tmp_path / "result.json"
+    out, trace = tmp_path / "result.json", tmp_path / "trace.csv"
     proc = subprocess.run(
         up_command(tmp_path, "--mode", "rsu", "--seed", "2", "--speed", str(SPEED),
-                   "--json", str(out), "--timeout", "120"),
+                   "--json", str(out), "--trace", str(trace), "--timeout", "120"),
         cwd=REPO, env=child_env(), capture_output=True, text=True, timeout=180,
     )  # fmt: skip
     assert proc.returncode == 0, proc.stdout + proc.stderr
@@ -143,11 +145,21 @@ def test_up_runs_the_paper_scenario_like_the_in_process_harness(tmp_path: Path) 
     reference = simulate(load_scenario(PAPER), SimOptions(mode=RunMode.RSU, seed=2))
     assert result["harness"] == "daemons" and result["mode"] == "rsu"
     assert result["collisions"] == 0
-    assert result["start_times"] == reference["start_times"]
-    for vid, ref in reference["vehicles"].items():
+    assert result["start_times"] == reference.start_times
+    for vid, ref in reference.vehicles.items():
         got = result["vehicles"][vid]
         assert got["finished"], vid
-        assert got["passing_time_s"] == pytest.approx(ref["passing_time_s"], rel=0.10), vid
+        assert got["passing_time_s"] == pytest.approx(ref.passing_time_s, rel=0.10), vid
+    # --trace: the per-step CSV of ``sim --trace``, not in the JSON
+    assert "trace" not in result and "trace_fields" not in result
+    with trace.open() as fh:
+        rows = list(csv.DictReader(fh))
+    assert list(rows[0]) == list(TRACE_FIELDS)
+    steps = {vid: [r for r in rows if r["vehicle"] == vid] for vid in ("A", "B")}
+    for vid, mine in steps.items():
+        assert len(mine) >= 0.9 * result["sim_s"] * 20, vid  # every physics step (20 Hz)
+        assert max(float(r["speed"]) for r in mine) > 10.0
+    assert {r["mode"] for r in rows} >= {"AUTO", "C_FAST"}  # the RSU coordinated
     network = result["network"]
     for stream in ("fp", "ap", "cmd", "beacon"):
         assert stream in network, stream

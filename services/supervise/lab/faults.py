@@ -8,27 +8,28 @@ sending application (no ``EPERM`` from ``sendto`` as an ``inet`` output-hook dro
 would give). The ``egress`` hook needs Linux >= 5.16 and nftables >= 1.0.1
 (Debian 12 has both); ingress loss works on any kernel with nftables.
 
-What "R % loss" means here. The default direction is **ingress**: the rule
-sits on each *receiver's* air ingress, so a broadcast future path reaches each
-receiver independently with probability ``1 - R/100``, as on a radio channel
-where every receiver has its own reception. ``Direction.EGRESS`` puts the rule
-on the *sender's* air egress instead (before its rate limit, so lost packets
-use no channel time): a lost broadcast is then lost for every receiver at once
-(a transmitter fault, not a channel). Loss on a node covers everything that
-node receives (ingress) or sends (egress) on the air.
+What "loss R" means here (``R`` a fraction 0..1, as every probability in
+crosspath; percent appears only in log lines). The default direction is
+**ingress**: the rule sits on each *receiver's* air ingress, so a broadcast
+future path reaches each receiver independently with probability ``1 - R``, as
+on a radio channel where every receiver has its own reception.
+``Direction.EGRESS`` puts the rule on the *sender's* air egress instead (before
+its rate limit, so lost packets use no channel time): a lost broadcast is then
+lost for every receiver at once (a transmitter fault, not a channel). Loss on a
+node covers everything that node receives (ingress) or sends (egress) on the air.
 
 Loss models (both per packet, draws from the kernel's ``numgen random``):
 
-* independent (``burst=None``): each packet is dropped with probability R/100;
+* independent (``burst=None``): each packet is dropped with probability R;
 * bursty (``burst=b``): a two-state Gilbert model per *link*, the link being
   the peer address (sender for ingress, destination for egress). In the Bad
   state every packet is lost, in Good none. Per packet the state changes first
   and the packet's fate follows the new state: Good→Bad with probability
-  ``p = (R/100)/(1-R/100) / b``, Bad→Good with ``r = 1/b``. The stationary loss
-  is ``p/(p+r) = R/100`` and loss bursts are geometric with mean ``b`` packets.
+  ``p = R/(1-R) / b``, Bad→Good with ``r = 1/b``. The stationary loss
+  is ``p/(p+r) = R`` and loss bursts are geometric with mean ``b`` packets.
   The Bad state is membership of the peer address in a dynamic nft set
   (``add @bad`` / ``delete @bad`` from the packet path). It needs ``b >=
-  (R/100)/(1-R/100)`` (else ``p > 1``), e.g. ``b >= 1`` for 50 %.
+  R/(1-R)`` (else ``p > 1``), e.g. ``b >= 1`` for R = 0.5.
 
 Counters in the same table: ``air_seen`` (IPv4 packets that met the loss rule)
 and ``air_dropped`` (those dropped). ``set_loss`` keeps them across calls;
@@ -81,29 +82,25 @@ class Direction(StrEnum):
 class Loss:
     """A loss model for one node's air interface."""
 
-    percent: float
-    """Long-run share of packets lost, 0-100."""
+    ratio: float
+    """Long-run share of packets lost, a fraction 0..1."""
     burst: float | None = None
     """Mean loss-burst length in packets (Gilbert model); ``None``: independent losses."""
     direction: Direction = Direction.INGRESS
 
     def __post_init__(self) -> None:
-        if not 0.0 <= self.percent <= 100.0:
-            raise ValueError(f"loss percent must be within 0..100, got {self.percent}")
+        if not 0.0 <= self.ratio <= 1.0:
+            raise ValueError(f"loss must be a fraction within 0..1, got {self.ratio}")
         if self.burst is not None:
             if not self.burst >= 1.0:
                 raise ValueError(f"mean burst length must be >= 1 packet, got {self.burst}")
-            if 0.0 < self.percent < 100.0:
+            if 0.0 < self.ratio < 1.0:
                 least = self.ratio / (1.0 - self.ratio)
                 if self.burst < least:
                     raise ValueError(
-                        f"{self.percent} % loss needs a mean burst of at least {least:.3g} packets"
+                        f"loss {self.ratio:g} needs a mean burst of at least {least:.3g} packets"
                     )
         Direction(self.direction)
-
-    @property
-    def ratio(self) -> float:
-        return self.percent / 100.0
 
     @property
     def p_enter(self) -> float:
@@ -147,9 +144,9 @@ def loss_ruleset(air_if: str, loss: Loss, existing_chains: Collection[str] = ())
     rule = f"add rule {t} {chain} meta protocol ip"
     lines.append(f"{rule} counter name air_seen")
     drop = "counter name air_dropped drop"
-    if loss.percent >= 100.0:
+    if loss.ratio >= 1.0:
         lines.append(f"{rule} {drop}")
-    elif loss.percent <= 0.0:
+    elif loss.ratio <= 0.0:
         pass
     elif loss.burst is None:
         lines.append(f"{rule} numgen random mod {_SCALE} < {_threshold(loss.p_enter)} {drop}")
@@ -188,17 +185,17 @@ def _nft_table(lab: Lab, node: str) -> list[dict[str, Any]] | None:
 def set_loss(
     lab: Lab,
     node: str,
-    percent: float,
+    ratio: float,
     burst: float | None = None,
     *,
     direction: Direction = Direction.INGRESS,
 ) -> Loss:
-    """Make ``node`` lose ``percent`` % of its air packets (see the module doc for the model).
+    """Make ``node`` lose a share ``ratio`` (0..1) of its air packets (see the module doc).
 
     Replaces any earlier loss on the node atomically (one nft transaction).
     ``ValueError`` for an impossible model, ``LabError`` if nft fails.
     """
-    loss = Loss(percent, burst, Direction(direction))
+    loss = Loss(ratio, burst, Direction(direction))
     plan = lab.node(node)
     table = _nft_table(lab, node) or []
     chains = {str(item["chain"].get("name")) for item in table if "chain" in item}
@@ -207,7 +204,7 @@ def set_loss(
         "lab %s: %s loses %g %% on air (%s, burst %s)",
         lab.name,
         node,
-        percent,
+        ratio * 100.0,
         loss.direction,
         burst,
     )
@@ -299,7 +296,7 @@ def apply(lab: Lab, node: str, faults: AirFaults) -> None:
     if faults.loss is None:
         clear_loss(lab, node)
     else:
-        set_loss(lab, node, faults.loss.percent, faults.loss.burst, direction=faults.loss.direction)
+        set_loss(lab, node, faults.loss.ratio, faults.loss.burst, direction=faults.loss.direction)
     if faults.rate_mbit is None:
         clear_rate(lab, node)
     else:

@@ -35,7 +35,7 @@ Decisions where the issue was silent:
   endpoint), then installs the faults before run time 0. ``lab.faults.applied_at_s``
   says when (negative: before the run's epoch).
 * **Loss** is ingress loss on every car's and RSU's air interface (independent
-  per receiver, as a radio; optional Gilbert bursts), ``R`` in percent. The rate
+  per receiver, as a radio; optional Gilbert bursts), ``R`` a fraction 0..1. The rate
   limit (tbf) is on every car's and RSU's air interface. The monitor is not a
   radio node: it sends and receives no V2X.
 * **Crash and restart** (``NODE@T``, run seconds): SIGKILL of every process in
@@ -88,6 +88,7 @@ from pathlib import Path
 from types import FrameType
 from typing import IO, Any, Final
 
+from services.model.results import ChannelParams, RunResult
 from services.model.scenario import Scenario, load_scenario
 from services.model.types import Policy, RunMode
 from services.supervise.lab.faults import (
@@ -572,7 +573,7 @@ class LabSession:
         return out
 
     def apply_faults(self, loss: float, burst: float | None, rate_mbit: float | None) -> list[str]:
-        """Loss (ingress, percent) and rate limit on every radio node; what was done."""
+        """Loss (ingress, a fraction 0..1) and rate limit on every radio node; what was done."""
         done: list[str] = []
         for node in self.radio_nodes:
             if loss > 0.0:
@@ -580,7 +581,7 @@ class LabSession:
             if rate_mbit is not None:
                 set_rate(self.lab, node, rate_mbit)
         if loss > 0.0:
-            done.append(f"loss {loss:g} %" + (f" (bursts of {burst:g})" if burst else ""))
+            done.append(f"loss {loss:g}" + (f" (bursts of {burst:g})" if burst else ""))
         if rate_mbit is not None:
             done.append(f"rate {rate_mbit:g} Mbit/s")
         return done
@@ -729,14 +730,16 @@ def run_lab(
     log_level: str = "INFO",
     lease_ms: int = LAB_LEASE_MS,
     say: Callable[[str], None] | None = None,
-) -> dict[str, Any]:
-    """One run in a fresh lab; returns the run result with ``network`` and ``lab``.
+) -> RunResult:
+    """One run in a fresh lab; returns the run result with ``network`` and ``lab`` (its
+    provenance's channel says ``lab`` with the loss, burst and rate).
 
-    ``loss`` in percent (ingress on every car and RSU), ``burst`` the mean loss
+    ``loss`` a fraction 0..1 (ingress on every car and RSU), ``burst`` the mean loss
     burst in packets (Gilbert), ``rate_mbit`` a tbf limit on every car's and RSU's
     air; ``crash_at`` / ``restart_at`` the schedule (run seconds); ``trace`` keeps
     the per-step trace in the result. A run that fails (a daemon died, the monitor
-    gave up, timeout) still returns a result, with ``error``. Raises ``ValueError``
+    gave up, timeout) still returns a result, with ``error`` (one that recorded nothing
+    when the monitor wrote none). Raises ``ValueError``
     for bad arguments, :class:`~services.supervise.lab.netns.LabError` when the lab
     cannot be built or the run cannot start, :class:`LabInterrupted` on
     SIGINT/SIGTERM. The lab is always torn down before this returns or raises.
@@ -748,8 +751,8 @@ def run_lab(
     if seed < 0:
         raise ValueError(f"seed must be >= 0, got {seed}")
     loss_model = Loss(loss, burst) if loss > 0.0 else None
-    if loss_model is None and not 0.0 <= loss <= 100.0:
-        raise ValueError(f"loss must be within 0..100 %, got {loss}")
+    if loss_model is None and not 0.0 <= loss <= 1.0:
+        raise ValueError(f"loss must be a fraction within 0..1, got {loss}")
     if rate_mbit is not None:
         Rate.of(rate_mbit)
     name = name or f"r{secrets.token_hex(4)}"
@@ -775,7 +778,7 @@ def run_lab(
         "endpoints": {},
         "nodes": {},
         "faults": {
-            "loss_percent": loss,
+            "loss": loss,
             "burst": burst,
             "direction": str(Direction.INGRESS),
             "rate_mbit": rate_mbit,
@@ -900,25 +903,27 @@ def run_lab(
                 interrupted = LabInterrupted(arrived[0])
     if interrupted is not None:
         raise interrupted
-    result: dict[str, Any]
+    result: RunResult
     try:
-        result = json.loads(result_path.read_text())
+        result = RunResult.model_validate_json(result_path.read_bytes())
     except (OSError, ValueError):
-        result = {
-            "mode": str(run_mode),
-            "policy": str(run_policy),
-            "seed": seed,
-            "error": "the monitor wrote no result",
-        }
+        result = RunResult.failed(
+            mode=run_mode,
+            policy=run_policy if run_mode is RunMode.RSU else None,
+            seed=seed,
+            scenario=sc.name,
+            harness="daemons",
+            error="the monitor wrote no result",
+        )
         mon_log = out_dir / f"{MONITOR}.log"
         notes.append(f"monitor log tail:\n{tail_log(mon_log, 15)}")
     if notes:
-        prior = result.get("error")
-        result["error"] = "; ".join(notes) + (f" ({prior})" if prior else "")
-    fields = list(result.get("trace_fields") or [])
-    rows: list[Sequence[Any]] = list(result.get("trace") or [])
-    sim_s = float(result.get("sim_s") or 0.0)
-    actors: Mapping[str, Any] = result.get("actors") or {}
+        prior = result.error
+        result = result.updated(error="; ".join(notes) + (f" ({prior})" if prior else ""))
+    fields = list(result.trace_fields or [])
+    rows: list[Sequence[Any]] = list(result.trace or [])
+    sim_s = result.sim_s
+    actors: Mapping[str, Any] = result.actors or {}
     if after:
         lab_info["air"] = _air_section(before, after, actors, sim_s)
         lab_info["checks"] = {
@@ -967,14 +972,18 @@ def run_lab(
         if timeline:
             lab_info["timeline"] = timeline
     lab_info["pids"] = session.pids()
-    result["loss"] = loss / 100.0  # a probability, as in the in-process harness's result
-    result["lab"] = lab_info
+    channel = ChannelParams(kind="lab", loss=loss, burst=burst, rate_mbit=rate_mbit)
+    prov = result.provenance
+    result = result.updated(
+        loss=loss,  # a probability, as in the in-process harness's result
+        lab=lab_info,
+        provenance=None if prov is None else prov.model_copy(update={"channel": channel}),
+    )
     if not trace:
-        result.pop("trace", None)
-        result.pop("trace_fields", None)
+        result = result.without_trace()
     if json_out is not None:
         json_out.parent.mkdir(parents=True, exist_ok=True)
-        json_out.write_text(json.dumps(result, indent=2) + "\n")
+        json_out.write_text(result.to_json() + "\n")
     return result
 
 

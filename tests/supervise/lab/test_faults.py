@@ -29,7 +29,7 @@ from tests.supervise.lab.conftest import tcp_transfer, udp_transfer
 
 
 def test_independent_loss_is_one_probability() -> None:
-    loss = Loss(30.0)
+    loss = Loss(0.3)
     assert loss.p_enter == pytest.approx(0.3)
     assert loss.p_leave == 0.0
     script = loss_ruleset("air0", loss)
@@ -39,7 +39,7 @@ def test_independent_loss_is_one_probability() -> None:
 
 
 def test_gilbert_parameters_give_the_asked_loss_and_burst() -> None:
-    loss = Loss(30.0, burst=5)
+    loss = Loss(0.3, burst=5)
     p, r = loss.p_enter, loss.p_leave
     assert r == pytest.approx(0.2)
     assert p / (p + r) == pytest.approx(0.3)  # stationary loss
@@ -50,37 +50,36 @@ def test_gilbert_parameters_give_the_asked_loss_and_burst() -> None:
 
 
 def test_egress_loss_matches_the_sender_side() -> None:
-    script = loss_ruleset("air0", Loss(10.0, burst=2, direction=Direction.EGRESS))
+    script = loss_ruleset("air0", Loss(0.1, burst=2, direction=Direction.EGRESS))
     assert 'hook egress device "air0"' in script
     assert "ingress" not in script
     assert "ip daddr @bad" in script
     # An ingress chain left from an earlier call is emptied, not left dropping.
-    again = loss_ruleset("air0", Loss(10.0, direction=Direction.EGRESS), ["ingress"])
+    again = loss_ruleset("air0", Loss(0.1, direction=Direction.EGRESS), ["ingress"])
     assert "flush chain netdev crosspath_lab ingress" in again
 
 
 def test_extreme_losses_need_no_random_draw() -> None:
-    assert "numgen" not in loss_ruleset("air0", Loss(100.0, burst=3))
+    assert "numgen" not in loss_ruleset("air0", Loss(1.0, burst=3))
     zero = loss_ruleset("air0", Loss(0.0))
     assert "numgen" not in zero
     assert not any(line.endswith(" drop") for line in zero.splitlines())
 
 
 @pytest.mark.parametrize(
-    ("percent", "burst", "match"),
+    ("ratio", "burst", "match"),
     [
-        (-1.0, None, "0..100"),
-        (100.5, None, "0..100"),
-        (float("nan"), None, "0..100"),
-        (30.0, 0.5, ">= 1"),
-        (90.0, 5.0, "at least 9"),
+        (-0.01, None, "0..1"),
+        (1.005, None, "0..1"),
+        (30.0, None, "0..1"),  # a percentage is not a fraction
+        (float("nan"), None, "0..1"),
+        (0.3, 0.5, ">= 1"),
+        (0.9, 5.0, "at least 9"),
     ],
 )
-def test_impossible_loss_models_are_refused(
-    percent: float, burst: float | None, match: str
-) -> None:
+def test_impossible_loss_models_are_refused(ratio: float, burst: float | None, match: str) -> None:
     with pytest.raises(ValueError, match=match):
-        Loss(percent, burst)
+        Loss(ratio, burst)
 
 
 def test_rate_bucket_defaults_and_validation() -> None:
@@ -125,7 +124,7 @@ def _loss_runs(seqs: list[int], sent: int) -> list[int]:
 
 def test_ingress_loss_is_independent_per_receiver(lab: Lab) -> None:
     before = air_counters(lab, "b")
-    set_loss(lab, "b", 30.0)
+    set_loss(lab, "b", 0.3)
     sent, got = udp_transfer(lab, "a", ["b", "r"], dst=lab.plan.air_broadcast, count=2000)
     after = air_counters(lab, "b")
     assert sent == 2000
@@ -140,7 +139,7 @@ def test_ingress_loss_is_independent_per_receiver(lab: Lab) -> None:
 
 
 def test_full_loss_cuts_the_air_but_not_the_wire(lab: Lab) -> None:
-    set_loss(lab, "b", 100.0)
+    set_loss(lab, "b", 1.0)
     sent, got = udp_transfer(lab, "a", ["b"], dst=lab.air_addr("b"), count=200)
     assert sent == 200
     assert got["b"].seqs == []
@@ -149,7 +148,7 @@ def test_full_loss_cuts_the_air_but_not_the_wire(lab: Lab) -> None:
 
 
 def test_burst_loss_gives_the_asked_loss_in_longer_runs(lab: Lab) -> None:
-    loss = set_loss(lab, "b", 30.0, burst=5)
+    loss = set_loss(lab, "b", 0.3, burst=5)
     assert loss.burst == 5
     sent, got = udp_transfer(lab, "a", ["b"], dst=lab.air_addr("b"), count=3000)
     received = len(set(got["b"].seqs))
@@ -161,7 +160,7 @@ def test_burst_loss_gives_the_asked_loss_in_longer_runs(lab: Lab) -> None:
 
 
 def test_egress_loss_drops_a_broadcast_for_every_receiver(lab: Lab) -> None:
-    set_loss(lab, "a", 30.0, direction=Direction.EGRESS)
+    set_loss(lab, "a", 0.3, direction=Direction.EGRESS)
     sent, got = udp_transfer(lab, "a", ["b", "r"], dst=lab.plan.air_broadcast, count=2000)
     b, r = set(got["b"].seqs), set(got["r"].seqs)
     assert b == r
@@ -172,7 +171,7 @@ def test_egress_loss_drops_a_broadcast_for_every_receiver(lab: Lab) -> None:
 
 
 def test_loss_only_on_the_air_interface(lab: Lab) -> None:
-    set_loss(lab, "r", 100.0)
+    set_loss(lab, "r", 1.0)
     sent, got = udp_transfer(lab, "a", ["r"], dst=lab.air_addr("r"), count=50)
     assert got["r"].seqs == []
     counters = air_counters(lab, "r")
@@ -207,7 +206,7 @@ def test_rate_limit_cuts_throughput_against_an_unlimited_baseline(lab: Lab) -> N
 
 
 def test_clear_and_apply_restore_a_clean_air(lab: Lab) -> None:
-    set_loss(lab, "b", 100.0)
+    set_loss(lab, "b", 1.0)
     set_rate(lab, "a", 1.0)
     clear(lab, "b")
     clear(lab, "a")
@@ -215,7 +214,7 @@ def test_clear_and_apply_restore_a_clean_air(lab: Lab) -> None:
     assert "tbf" not in lab.tc("a", ["qdisc", "show", "dev", "air0"])
     sent, got = udp_transfer(lab, "a", ["b"], dst=lab.air_addr("b"), count=200)
     assert sorted(got["b"].seqs) == list(range(sent))
-    apply(lab, "b", AirFaults(loss=Loss(100.0), rate_mbit=2.0))
+    apply(lab, "b", AirFaults(loss=Loss(1.0), rate_mbit=2.0))
     assert "tbf" in lab.tc("b", ["qdisc", "show", "dev", "air0"])
     assert air_counters(lab, "b").loss_dropped == 0
     apply(lab, "b", AirFaults())
@@ -225,12 +224,12 @@ def test_clear_and_apply_restore_a_clean_air(lab: Lab) -> None:
 
 
 def test_bad_fault_requests_change_nothing(lab: Lab) -> None:
-    set_loss(lab, "b", 10.0)
+    set_loss(lab, "b", 0.1)
     script_before = lab.nft("b", ["list", "ruleset"])
     with pytest.raises(ValueError):
-        set_loss(lab, "b", 150.0)
+        set_loss(lab, "b", 1.5)
     with pytest.raises(LabError, match="no node"):
-        set_loss(lab, "zz", 10.0)
+        set_loss(lab, "zz", 0.1)
     with pytest.raises(ValueError):
         set_rate(lab, "b", 0.0)
     assert lab.nft("b", ["list", "ruleset"]) == script_before

@@ -26,6 +26,7 @@ from services.edge.lifecycle import serve
 from services.edge.plumbing import StatsReport, alive_key, encode_stats
 from services.edge.transport import RELIABLE_QOS, MemoryBus
 from services.experiments.loss_sweep import aggregate, parse_losses, render_table
+from services.model.results import RunResult
 from services.model.scenario import load_scenario
 from services.model.types import RunMode
 from services.sim.harness import SimOptions, simulate
@@ -105,7 +106,8 @@ def test_bad_schedules_are_refused_before_anything_is_built(tmp_path: Path) -> N
         ({"crash_at": [TimedAction("rsu9", 5.0)]}, "rsu9"),
         ({"crash_at": [TimedAction("rsu1", 5.0)], "mode": "fp-only"}, "rsu1"),
         ({"speed": 0.0}, "speed"),
-        ({"loss": 130.0}, "loss"),
+        ({"loss": 1.3}, "loss"),
+        ({"loss": 30.0}, "fraction"),  # a percentage is refused, not read as 30 %
     ]
     for kwargs, needle in cases:
         with pytest.raises(ValueError, match=needle):
@@ -113,21 +115,48 @@ def test_bad_schedules_are_refused_before_anything_is_built(tmp_path: Path) -> N
         assert not (tmp_path / "never").exists()
 
 
+def _stream(delivery_ratio: float) -> dict[str, Any]:
+    return {
+        "msgs": 10, "bytes": 100, "msgs_rx": 7, "bytes_rx": 70, "malformed": 0,
+        "dropped_stale": 0, "kbps_per_vehicle": 1.0, "latency_ms_p50": 1.0,
+        "latency_ms_p99": 2.0, "latency_ms_mean": 1.2, "delivery_ratio": delivery_ratio,
+    }  # fmt: skip
+
+
+def _sweep_run(
+    mean: float,
+    *,
+    collisions: int,
+    pet: float,
+    network: dict[str, Any] | None,
+    lab: dict[str, Any],
+) -> RunResult:
+    """A lab run result with the figures the sweep aggregates."""
+    car = {"passing_time_s": mean, "first_through": False, "stops": 0,
+           "max_speed_mps": 13.9, "finished": True}  # fmt: skip
+    data = {
+        "mode": "rsu", "policy": "paper", "seed": 0, "collisions": collisions,
+        "min_gap_m": 12.0 if collisions == 0 else 0.0, "min_pet_s": pet, "sim_s": 40.0,
+        "wall_s": 20.0, "mean_passing_time_s": mean, "all_finished": True,
+        "vehicles": {"A": car, "B": car}, "scenario": "paper-blind-intersection",
+        "start_times": {"A": 0.0, "B": 0.5}, "harness": "daemons",
+        "speedup_vs_real_time": 2.0, "network": network, "lab": lab,
+    }  # fmt: skip
+    return RunResult.model_validate(data)
+
+
 def test_loss_sweep_helpers() -> None:
-    assert parse_losses("0, 10,30%") == (0.0, 10.0, 30.0)
-    for bad in ("", "x", "120", "10,10"):
+    assert parse_losses("0, 0.1,30%") == (0.0, 0.1, 0.3)
+    for bad in ("", "x", "1.2", "10", "nan", "0.1,0.1", "0.1,10%"):
         with pytest.raises(ValueError):
             parse_losses(bad)
     runs = [
-        {
-            "mean_passing_time_s": 24.0,
-            "collisions": 0,
-            "min_pet_s": 1.9,
-            "min_gap_m": 12.0,
-            "all_finished": True,
-            "vehicles": {"A": {}, "B": {}},
-            "network": {"fp": {"delivery_ratio": 0.7}},
-            "lab": {
+        _sweep_run(
+            24.0,
+            collisions=0,
+            pet=1.9,
+            network={"fp": _stream(delivery_ratio=0.7), "total_kbps_per_vehicle": 1.0},
+            lab={
                 "faults": {"nodes": ["A", "B", "rsu1"]},
                 "air": {
                     n: {
@@ -140,26 +169,20 @@ def test_loss_sweep_helpers() -> None:
                 },
                 "modes": {"A": {"coordinated_s": 10.0}, "B": {"coordinated_s": 12.0}},
             },
-        },
-        {
-            "mean_passing_time_s": 26.0,
-            "collisions": 1,
-            "min_pet_s": 0.0,
-            "min_gap_m": -0.2,
-            "all_finished": True,
-            "vehicles": {"A": {}, "B": {}},
-            "network": {},
-            "lab": {},
-        },
+        ),
+        _sweep_run(26.0, collisions=1, pet=0.0, network=None, lab={}),
     ]
     a = aggregate(runs, lab=True)
     assert a["average_passing_time_s"]["mean"] == pytest.approx(25.0)
     assert (a["collisions"], a["runs_with_collision"], a["min_pet_s"]) == (1, 1, 0.0)
-    assert a["measured_loss_pct"] == pytest.approx(30.0)
+    assert a["measured_loss"] == pytest.approx(0.3)
     assert a["coordinated_s"] == pytest.approx(11.0) and a["fp_delivery"] == pytest.approx(0.7)
     doc = {
-        "columns": [{"key": "loss30", "title": "30 %", "loss": 0.3}],
-        "aggregates": {"lab": {"loss30": a}, "in_process": {"loss30": aggregate(runs, False)}},
+        "columns": [{"key": "loss0.3", "title": "loss 0.3", "loss": 0.3}],
+        "aggregates": {
+            "lab": {"loss0.3": a},
+            "in_process": {"loss0.3": aggregate(runs, False)},
+        },
         "standalone_reference": aggregate(runs, False),
         "policy": "paper",
         "trials": 2,
@@ -167,7 +190,8 @@ def test_loss_sweep_helpers() -> None:
         "speed": 2.0,
     }
     table = render_table(doc)
-    assert "| 30 % | 25.00 ± 1.41 | 25.00 | 1 / 2 runs | 0.00 |" in table
+    assert "| loss 0.3 | 25.00 ± 1.41 | 25.00 | 1 / 2 runs | 0.00 |" in table
+    assert "| 0.300 |" in table  # measured loss, a fraction as every share
 
 
 # --------------------------------------------------------------------------- monitor
@@ -217,23 +241,25 @@ async def test_monitor_survives_an_expected_crash_and_records_both_incarnations(
     actors.stats("B", "run-9", True, fp_tx=5, fp_rx=5)
     assert await asyncio.wait_for(task, 10.0) == 0
     result = mon.result
-    assert result is not None and mon.failure is None and "error" not in result
-    assert [c["event"] for c in result["crashes"]] == ["lost", "back"]
-    assert result["expect_crash"] == ["rsu1"]
-    assert result["network"]["fp"]["msgs_rx"] == 5 + 5 + 4 + 3  # both incarnations count
-    rsu = result["actors"]["rsu1"]
+    assert result is not None and mon.failure is None and result.error is None
+    assert [c.event for c in result.crashes or []] == ["lost", "back"]
+    assert result.expect_crash == ["rsu1"]
+    fp = result.network.stream("fp") if result.network else None
+    assert fp is not None and fp.msgs_rx == 5 + 5 + 4 + 3  # both incarnations count
+    rsu = (result.actors or {})["rsu1"]
     assert rsu["boot"] == "two" and rsu["incarnations"] == 2 and rsu["table_size"] == 2
     assert rsu["v2x"]["msgs_rx"] == 7
-    assert result["trace_fields"] == FIELDS
-    assert len(result["trace"]) == 2 * 21 and {r[6] for r in result["trace"]} == {"AUTO"}
+    assert result.trace_fields == FIELDS
+    trace = result.trace or []
+    assert len(trace) == 2 * 21 and {r[6] for r in trace} == {"AUTO"}
 
 
 # --------------------------------------------------------------------------- real labs
 
 
-def _gone(result: dict[str, Any]) -> None:
+def _gone(result: RunResult) -> None:
     """Nothing of the run's lab is left: namespaces, processes."""
-    lab = result["lab"]
+    lab = result.lab or {}
     assert list_namespaces(f"cpl-{lab['name']}-") == []
     for pids in lab["pids"].values():
         for pid in pids:
@@ -241,14 +267,14 @@ def _gone(result: dict[str, Any]) -> None:
                 os.kill(pid, 0)
 
 
-def _check_separate_and_routed(result: dict[str, Any]) -> None:
-    lab = result["lab"]
+def _check_separate_and_routed(result: RunResult) -> None:
+    lab = result.lab or {}
     nodes = lab["nodes"]
     assert {n["netns"] for n in nodes.values()} == {f"cpl-{lab['name']}-{n}" for n in nodes}
     assert len({n["air"] for n in nodes.values()}) == len(nodes)
     # V2X on the air over UDP, plumbing on the wire over TCP, nothing crossed over
     assert lab["checks"] == {"air_tcp_bytes": 0, "wire_udp_bytes": 0}
-    for car in result["vehicles"]:
+    for car in result.vehicles:
         air = lab["air"][car]
         assert air["air_udp_out_bytes"] > air["daemon_tx_bytes"] > 0
         assert air["wire_tcp_out_bytes"] > 0
@@ -268,30 +294,33 @@ def test_cars_and_rsu_in_separate_namespaces_complete_an_rsu_run(
         run_dir=tmp_path / "run",
         json_out=tmp_path / "result.json",
     )
-    assert "error" not in result, result.get("error")
-    assert result["harness"] == "daemons" and result["all_finished"]
-    assert result["collisions"] == 0
-    assert result["network"]["fp"]["delivery_ratio"] >= 0.95
-    assert result["lab"]["modes"]["B"]["coordinated_s"] > 0  # the RSU coordinated
+    assert result.error is None, result.error
+    assert result.harness == "daemons" and result.all_finished
+    assert result.collisions == 0
+    fp = result.network.stream("fp") if result.network else None
+    assert fp is not None and fp.delivery_ratio is not None and fp.delivery_ratio >= 0.95
+    lab = result.lab or {}
+    assert lab["modes"]["B"]["coordinated_s"] > 0  # the RSU coordinated
+    assert result.provenance is not None and result.provenance.channel.kind == "lab"
     _check_separate_and_routed(result)
-    assert (
-        json.loads((tmp_path / "result.json").read_text())["lab"]["name"] == result["lab"]["name"]
-    )
+    assert json.loads((tmp_path / "result.json").read_text())["lab"]["name"] == lab["name"]
     _gone(result)
 
 
 @pytest.mark.timeout(150)
 def test_thirty_percent_loss_no_collision(lab_ready: None, tmp_path: Path) -> None:
     result = run_lab(
-        PAPER, RunMode.RSU, seed=1, loss=30.0, speed=SPEED, name=new_lab_name(), run_dir=tmp_path
+        PAPER, RunMode.RSU, seed=1, loss=0.3, speed=SPEED, name=new_lab_name(), run_dir=tmp_path
     )
-    assert "error" not in result, result.get("error")
-    assert result["collisions"] == 0 and result["all_finished"]
-    air = result["lab"]["air"]
+    assert result.error is None, result.error
+    assert result.collisions == 0 and result.all_finished
+    assert result.provenance is not None and result.provenance.channel.loss == 0.3
+    air = (result.lab or {})["air"]
     seen = sum(air[n]["loss_seen"] for n in ("A", "B", "rsu1"))
     dropped = sum(air[n]["loss_dropped"] for n in ("A", "B", "rsu1"))
     assert seen > 500 and 0.2 < dropped / seen < 0.4
-    assert 0.5 < result["network"]["fp"]["delivery_ratio"] < 0.85
+    fp = result.network.stream("fp") if result.network else None
+    assert fp is not None and fp.delivery_ratio is not None and 0.5 < fp.delivery_ratio < 0.85
     assert air["monitor"]["loss_seen"] == 0  # the monitor is not on the radio
     _gone(result)
 
@@ -303,22 +332,22 @@ def test_total_loss_makes_the_cars_standalone(lab_ready: None, tmp_path: Path) -
         PAPER,
         RunMode.RSU,
         seed=seed,
-        loss=100.0,
+        loss=1.0,
         speed=SPEED,
         name=new_lab_name(),
         run_dir=tmp_path,
         trace=True,
     )
-    assert "error" not in result, result.get("error")
-    assert result["collisions"] == 0 and result["all_finished"]
-    network = result["network"]
-    assert network["fp"]["msgs"] > 500 and network["fp"]["msgs_rx"] == 0  # nothing got through
-    assert {r[6] for r in result["trace"]} == {"AUTO"}  # never a coordinated mode
-    assert all(m["coordinated_s"] == 0 for m in result["lab"]["modes"].values())
+    assert result.error is None, result.error
+    assert result.collisions == 0 and result.all_finished
+    fp = result.network.stream("fp") if result.network else None
+    assert fp is not None and fp.msgs > 500 and fp.msgs_rx == 0  # nothing got through
+    assert {r[6] for r in result.trace or []} == {"AUTO"}  # never a coordinated mode
+    assert all(m["coordinated_s"] == 0 for m in (result.lab or {})["modes"].values())
     alone = simulate(load_scenario(PAPER), SimOptions(mode=RunMode.STANDALONE, seed=seed))
-    for car, v in alone["vehicles"].items():
-        got = result["vehicles"][car]["passing_time_s"]
-        assert got == pytest.approx(v["passing_time_s"], rel=0.10), car
+    for car, v in alone.vehicles.items():
+        got = result.vehicles[car].passing_time_s
+        assert got == pytest.approx(v.passing_time_s, rel=0.10), car
     _gone(result)
 
 
@@ -337,9 +366,9 @@ def test_rsu_crash_fallback_and_restart_rebuild(lab_ready: None, tmp_path: Path)
         restart_at=[TimedAction("rsu1", t_crash + 1.5)],
         trace=True,
     )
-    assert "error" not in result, result.get("error")
-    assert result["collisions"] == 0 and result["all_finished"]
-    timeline = result["lab"]["timeline"]
+    assert result.error is None, result.error
+    assert result.collisions == 0 and result.all_finished
+    timeline = (result.lab or {})["timeline"]
     crash = timeline["crashes"][0]
     assert crash["coordinated"], "no car was coordinated when the RSU died"
     # 0.3 s coordinated-path timeout + up to one 0.1 s planning period + network
@@ -347,13 +376,13 @@ def test_rsu_crash_fallback_and_restart_rebuild(lab_ready: None, tmp_path: Path)
     restart = timeline["restarts"][0]
     down = [
         r
-        for r in result["trace"]
-        if crash["crash_s"] + crash["fallback_all_s"] <= r[0] < restart["joined_s"]
+        for r in result.trace or []
+        if crash["crash_s"] + crash["fallback_all_s"] <= float(r[0]) < restart["joined_s"]
     ]
     assert down and {r[6] for r in down} == {"AUTO"}  # nobody coordinated while it was down
     assert restart["cars"] == ["A", "B"]
     assert restart["rebuild_s"] is not None and restart["rebuild_s"] <= 1.0
-    assert result["actors"]["rsu1"]["incarnations"] == 2
+    assert (result.actors or {})["rsu1"]["incarnations"] == 2
     _gone(result)
 
 
@@ -391,7 +420,7 @@ def _nothing_left(name: str) -> None:
 def test_lab_up_then_down_leaves_nothing(lab_ready: None, tmp_path: Path) -> None:
     name = new_lab_name()
     before = _root_state()
-    up = _cli("lab", "up", str(PAPER), "--name", name, "--loss", "10", "--log-dir", str(tmp_path))
+    up = _cli("lab", "up", str(PAPER), "--name", name, "--loss", "0.1", "--log-dir", str(tmp_path))
     out, err = up.communicate(timeout=60)
     assert up.returncode == 0, err
     assert f"cpl-{name}-monitor" in out and "ip netns exec" in out
