@@ -22,6 +22,7 @@ from protocol.messages import (
     Mode,
     ModeCommand,
     RsuBeacon,
+    VehicleLimits,
     VehiclePath,
 )
 
@@ -41,6 +42,7 @@ __all__ = [
     "Mode",
     "ModeCommand",
     "RsuBeacon",
+    "VehicleLimits",
     "VehiclePath",
     "decode",
     "encode",

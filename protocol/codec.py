@@ -1,6 +1,8 @@
 """Binary codec of crosspath's V2X messages (layout in ``protocol/SPEC.md``).
 
-Plain ``struct`` fields, little-endian, at fixed offsets after each id; path
+Plain ``struct`` fields, little-endian, at fixed offsets after each id; a vehicle
+path declares the car's limits (``VehicleLimits``: top speed, acceleration, braking,
+lateral acceleration) in five bytes, all zero when undeclared; path
 points are fixed-point (1 cm, 1 ms) and delta coded in columns whose width (0,
 1 or 2 bytes) the encoder picks per message, packed and unpacked with numpy in
 one go (no per-point Python loop). No msgpack: every field has a known type, so
@@ -48,6 +50,7 @@ from protocol.messages import (
     Mode,
     ModeCommand,
     RsuBeacon,
+    VehicleLimits,
     VehiclePath,
 )
 
@@ -69,6 +72,10 @@ MAX_LENGTH_M: Final = 50.0
 MAX_WIDTH_M: Final = 10.0
 """Widest vehicle accepted [m]."""
 
+MAX_ACCEL_MPS2: Final = 25.5
+"""Largest acceleration, comfortable braking or lateral acceleration a car may declare
+in its ``VehicleLimits`` [m/s²] (one byte of 0.1 m/s²; 2.6 g, beyond any tyre)."""
+
 MAX_RADIUS_M: Final = 10_000.0
 """Largest RSU coverage radius accepted [m]."""
 
@@ -89,12 +96,15 @@ _MAX_SPEED_CM_S: Final = round(MAX_SPEED_MPS * 100)
 _MAX_HEADING: Final = 31416  # 1e-4 rad, ceil(pi * 1e4)
 _MAX_LENGTH_CM: Final = round(MAX_LENGTH_M * 100)
 _MAX_WIDTH_CM: Final = round(MAX_WIDTH_M * 100)
+_MAX_ACCEL_DM: Final = round(MAX_ACCEL_MPS2 * 10)  # 0.1 m/s² units
+_NO_LIMITS: Final = (0, 0, 0, 0)  # limits not declared
 _MAX_RADIUS_CM: Final = round(MAX_RADIUS_M * 100)
 
 # header: magic, version, kind, flags, seq, time_us, sender length (then the sender id)
 _HEAD: Final = struct.Struct("<BBBBIqB")
-# future/autonomous path state: x, y, speed, heading, length, width, mode, n, widths
-_STATE: Final = struct.Struct("<iiHhHHBHB")
+# future/autonomous path state: x, y, speed, heading, length, width, then the limits
+# v_max [cm/s], accel, decel, lat_accel [0.1 m/s²], then mode, n, widths
+_STATE: Final = struct.Struct("<iiHhHHHBBBBHB")
 # coordinated path after its vehicle id: mode, n, widths
 _CP_STATE: Final = struct.Struct("<BHB")
 _FIRST3: Final = struct.Struct("<iii")  # first point: x [cm], y [cm], t [ms after header time]
@@ -320,7 +330,30 @@ def _encode_vehicle_path(kind: Kind, m: VehiclePath) -> list[bytes]:
     heading = float(m.heading)
     if math.isfinite(heading) and abs(heading) > _MAX_HEADING / 1e4:
         heading = math.remainder(heading, math.tau)  # into [-pi, pi]
-    return [head, _STATE.pack(*_vehicle_state(m, heading), mode, n, widths), packed, trailer]
+    state = _STATE.pack(*_vehicle_state(m, heading), *_limits_wire(m.limits), mode, n, widths)
+    return [head, state, packed, trailer]
+
+
+_LIMITS_WIRE: Final[dict[VehicleLimits, tuple[int, int, int, int]]] = {}
+"""Limits already validated and quantised; a car declares the same ones at 10 Hz."""
+
+
+def _limits_wire(limits: VehicleLimits | None) -> tuple[int, int, int, int]:
+    """v_max [cm/s], accel, decel, lat_accel [0.1 m/s²] of ``limits``; zeros for None."""
+    if limits is None:
+        return _NO_LIMITS
+    if type(limits) is not VehicleLimits:
+        raise EncodeError(f"limits must be VehicleLimits or None, not {type(limits).__name__}")
+    known = _LIMITS_WIRE.get(limits)
+    if known is not None:
+        return known
+    wire = (
+        _fixed(limits.v_max, 100.0, 1, _MAX_SPEED_CM_S, "limits.v_max", "m/s"),
+        _fixed(limits.accel, 10.0, 1, _MAX_ACCEL_DM, "limits.accel", "m/s²"),
+        _fixed(limits.decel, 10.0, 1, _MAX_ACCEL_DM, "limits.decel", "m/s²"),
+        _fixed(limits.lat_accel, 10.0, 1, _MAX_ACCEL_DM, "limits.lat_accel", "m/s²"),
+    )
+    return _remember(_LIMITS_WIRE, limits, wire)
 
 
 def _vehicle_state(m: VehiclePath, heading: float) -> tuple[int, ...]:
@@ -627,8 +660,31 @@ _NEW: Final[dict[type, Callable[..., Message]]] = {
 }
 
 
+_LIMITS: Final[dict[tuple[int, int, int, int], VehicleLimits]] = {}
+"""Declared limits already checked on receipt, by their wire values."""
+
+
+def _read_limits(raw: tuple[int, int, int, int]) -> VehicleLimits | None:
+    """The limits of wire values ``raw``; None when all are 0 (not declared)."""
+    known = _LIMITS.get(raw)
+    if known is not None:
+        return known
+    if raw == _NO_LIMITS:
+        return None
+    v_max, accel, decel, lat_accel = raw
+    if not (1 <= v_max <= _MAX_SPEED_CM_S and accel and decel and lat_accel):
+        raise DecodeError(
+            f"absurd vehicle limits: v_max {v_max / 100} m/s, accel {accel / 10}, "
+            f"decel {decel / 10}, lat_accel {lat_accel / 10} m/s² (all 0, or none)"
+        )
+    limits = VehicleLimits(v_max / 100, accel / 10, decel / 10, lat_accel / 10)
+    return _remember(_LIMITS, raw, limits)
+
+
 def _read_vehicle_path(buf: bytes, off: int, kind: Kind, time_us: int) -> _Body:
-    x, y, speed, heading, length, width, mode_v, n, widths = _STATE.unpack_from(buf, off)
+    x, y, speed, heading, length, width, lv, la, ld, ll, mode_v, n, widths = _STATE.unpack_from(
+        buf, off
+    )
     mode = _MODES.get(mode_v)
     if mode is None:
         raise DecodeError(f"invalid mode {mode_v}")
@@ -640,9 +696,20 @@ def _read_vehicle_path(buf: bytes, off: int, kind: Kind, time_us: int) -> _Body:
         raise DecodeError(f"heading {heading / 1e4} rad beyond ±pi")
     if not (1 <= length <= _MAX_LENGTH_CM and 1 <= width <= _MAX_WIDTH_CM):
         raise DecodeError(f"absurd vehicle shape {length / 100} m x {width / 100} m")
+    limits = _read_limits((lv, la, ld, ll))
     points, _, off = _read_points(buf, off + _STATE.size, kind, n, widths, 3, time_us)
     cls = FuturePath if kind is Kind.FUTURE_PATH else AutonomousPath
-    args = (x / 100, y / 100, speed / 100, heading / 1e4, length / 100, width / 100, mode, points)
+    args = (
+        x / 100,
+        y / 100,
+        speed / 100,
+        heading / 1e4,
+        length / 100,
+        width / 100,
+        mode,
+        points,
+        limits,
+    )
     return cls, args, off
 
 

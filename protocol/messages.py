@@ -22,8 +22,8 @@ import numpy.typing as npt
 
 FloatArray = npt.NDArray[np.float64]
 
-FORMAT_VERSION = 1
-"""Wire format version carried by every datagram."""
+FORMAT_VERSION = 2
+"""Wire format version carried by every datagram (2: vehicle paths carry ``VehicleLimits``)."""
 
 MAX_DATAGRAM = 1460
 """Largest datagram crosspath ever produces, in bytes (one UDP payload on Ethernet)."""
@@ -114,12 +114,31 @@ def _frozen_vector(values: FloatArray | list[float]) -> FloatArray:
     return arr
 
 
+@dataclass(frozen=True, slots=True)
+class VehicleLimits:
+    """What a car can do, declared in its own paths so that an RSU plans it with them.
+
+    ``v_max`` [m/s] top speed; ``accel`` [m/s²] the acceleration it plans with;
+    ``decel`` [m/s², positive] its comfortable braking; ``lat_accel`` [m/s²] the
+    lateral acceleration it accepts in a curve (speed cap ``sqrt(lat_accel * r)``).
+    They travel in the path, not in a certificate: nothing vouches for them until
+    messages are signed (a later version). On the wire ``v_max`` has 1 cm/s resolution,
+    the accelerations 0.1 m/s² (``SPEC.md`` 2.3).
+    """
+
+    v_max: float
+    accel: float
+    decel: float
+    lat_accel: float
+
+
 @dataclass(frozen=True, slots=True, eq=False)
 class VehiclePath:
     """A car's path with its current state (paper §III-A).
 
     Base of ``FuturePath`` (broadcast to all) and ``AutonomousPath`` (to the RSU
-    while coordinated); both carry the same fields.
+    while coordinated); both carry the same fields. ``limits`` None: the sender did
+    not declare them, and a receiver assumes its own (the RSU: its scenario's).
     """
 
     header: Header
@@ -131,6 +150,7 @@ class VehiclePath:
     width: float
     mode: Mode  # the sender's current mode
     points: FloatArray = field(default_factory=lambda: _frozen_points([]))
+    limits: VehicleLimits | None = None  # what the car can do, if it says
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "points", _frozen_points(self.points))

@@ -31,6 +31,10 @@ COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
     ("monitor",): ("services.daemons.monitor", "run the monitor daemon (ground truth, results)"),
     ("router",): ("services.daemons.router", "run a Zenoh router for multi-host setups"),
     ("demo",): ("services.cli.demo", "the paper's scenario in 3 modes, real daemons"),
+    ("results", "rebuild"): (
+        "services.cli.results",
+        "a run's (partial) result from its run dir, e.g. after the monitor died",
+    ),
     ("bench", "codec"): ("services.bench.codec", "codec micro-benchmark against JSON"),
     ("bench", "rsu"): ("services.bench.rsu", "RSU conflict-check benchmark against naive"),
     ("bench", "sim"): ("services.bench.sim", "in-process harness speed against real time"),

@@ -21,11 +21,16 @@ and sends what it says. One run, step by step:
    start it has seen), and the run fails if one has not ``ack_timeout_s`` wall
    seconds after the epoch.
 3. **Record.** Every car publishes its ground truth at each physics step on
-   ``{prefix}/sim/truth/{car}``. The monitor assembles the reports of one step
-   and feeds them to ``MetricsRecorder.record`` in step order, exactly as the
-   in-process harness does; a step still missing a car :data:`TRUTH_WAIT_S`
-   wall seconds after its time (or once another car is a second ahead) is
-   recorded with that car's latest known truth (counted in ``truth.gaps``).
+   ``{prefix}/sim/truth/{car}``. The monitor's core (``services.sim.truth``)
+   keeps the reports in a table of steps and closes the steps in order; a step
+   still missing a car :data:`TRUTH_WAIT_S` wall seconds after its time (or once
+   another car is a second ahead) is closed *without* it. The metrics are the
+   table replayed into ``MetricsRecorder`` with only same-step truth, as the
+   in-process harness records them: a missing report is never filled in from an
+   older step (per car in ``truth_gaps``, the run ``degraded``), and a late one
+   still counts as the truth of its step. Each actor's stats carry
+   ``late_ticks``, the ticks its control loop ran more than one period behind the
+   run clock (``services.edge.shell``); any makes the run ``degraded`` too.
 4. **End.** When every car stands at its goal (``car.all_at_goal``, as the harness) or
    run time reaches ``max_sim_s`` (the scenario's unless configured), it
    publishes :class:`~services.edge.plumbing.StopRun`, waits up to
@@ -34,6 +39,16 @@ and sends what it says. One run, step by step:
    ``"daemons"``, its provenance's channel ``zenoh``) with the ``network`` section
    (:func:`network_summary`), writes it as JSON to ``json_out`` if set, prints it
    as tables, and exits 0.
+
+**If the monitor dies** (SIGKILL: no chance to write anything at the end), the
+run is not lost: with ``json_out`` set the monitor appends, as the run goes, every
+truth and stats report it keeps to a step log beside it
+(``services.daemons.steplog``, ``<json_out stem>.steps.jsonl``), and
+``crosspath results rebuild RUN_DIR`` (:func:`rebuild_result`) replays it through
+the same core into a partial result (``error`` says so, ``rebuilt_from`` names
+the log); late ticks an actor logged at the end of its run (``late_ticks=N`` in
+``<node>.log``) count too. Decision: no periodic partial ``result.json`` (a
+second writer of the same numbers); the log plus the rebuild is the one way.
 
 The run fails (exit 1, a partial result with ``error`` is still written) when
 an actor is missing at the start, does not acknowledge, or loses its
@@ -82,6 +97,7 @@ import asyncio
 import json
 import logging
 import math
+import re
 import secrets
 import sys
 import time
@@ -92,6 +108,7 @@ from typing import Annotated, Any, Final
 from pydantic import Field, field_validator
 
 from protocol import keys
+from services.daemons.steplog import StepLog, StepLogError, read_step_log, step_log_path
 from services.edge.args import (
     non_negative_float,
     non_negative_int,
@@ -113,9 +130,10 @@ from services.edge.provenance import origin
 from services.edge.settings import CommonDaemonConfig, ConfigError
 from services.edge.shell import DaemonBase, DaemonCommand, add_daemon_arguments, wait_any
 from services.edge.stats import merge_snapshots, network_section
-from services.model.results import ChannelParams, NetworkSection, RunResult
+from services.model.results import ChannelParams, NetworkSection, Origin, RunResult
+from services.model.scenario import Scenario, ScenarioError, load_scenario
 from services.model.types import Policy, RunMode
-from services.sim.metrics import MetricsRecorder
+from services.sim.metrics import RunMetrics
 from services.sim.results import provenance, run_result
 from services.sim.truth import (
     START_REPEAT_S,
@@ -124,6 +142,7 @@ from services.sim.truth import (
     MonitorCore,
     MonitorRules,
     TraceRow,
+    TruthSteps,
 )
 
 __all__ = [
@@ -133,13 +152,17 @@ __all__ = [
     "V2X_STREAMS",
     "MonitorConfig",
     "MonitorService",
+    "StatsBook",
+    "assemble_result",
     "command",
     "configure",
     "expected_receivers",
+    "format_degraded",
     "format_network",
     "load_monitor",
     "network_summary",
     "new_run_id",
+    "rebuild_result",
     "run",
 ]
 
@@ -183,6 +206,9 @@ class MonitorConfig(CommonDaemonConfig):
     """Add the per-step ``trace`` (:data:`TRACE_FIELDS`) to the result."""
     start_file: Path | None = None
     """Write ``{run_id, epoch_unix, speed}`` here (JSON) when the run starts."""
+    step_log: Path | None = None
+    """The append-only step log (``services.daemons.steplog``); None: beside ``json_out``
+    (``<stem>.steps.jsonl``), none without ``json_out``."""
 
     @field_validator("run_id")
     @classmethod
@@ -218,6 +244,21 @@ def network_summary(
     total = sum(float(entry["kbps_per_vehicle"]) for entry in section.values())
     section["total_kbps_per_vehicle"] = total
     return section
+
+
+def format_degraded(result: RunResult) -> str | None:
+    """One line saying why a run is ``degraded`` (its safety metrics may miss something);
+    None for a clean run."""
+    if not result.degraded:
+        return None
+    parts = []
+    gaps = {k: n for k, n in (result.truth_gaps or {}).items() if n}
+    late = {k: n for k, n in (result.late_ticks or {}).items() if n}
+    if gaps:
+        parts.append("truth missing at " + ", ".join(f"{k} {n} steps" for k, n in gaps.items()))
+    if late:
+        parts.append("late ticks " + ", ".join(f"{k} {n}" for k, n in late.items()))
+    return "run DEGRADED (safety metrics may miss something): " + "; ".join(parts)
 
 
 def format_network(network: NetworkSection | None) -> str:
@@ -283,9 +324,15 @@ class MonitorService(DaemonBase[MonitorConfig]):
             self.core = MonitorCore(scenario, rules)
         except ValueError as exc:
             raise ConfigError([("scenario", str(exc))]) from None
-        self.reports: dict[str, StatsReport] = {}
-        self.earlier_reports: dict[str, list[StatsReport]] = {}
+        self.book = StatsBook(self.expected)
+        self.reports = self.book.reports
+        self.earlier_reports = self.book.earlier
         """Per node, the latest report of each earlier incarnation (see ``boot``)."""
+        log_path = cfg.step_log
+        if log_path is None and cfg.json_out is not None:
+            log_path = step_log_path(cfg.json_out)
+        self.step_log_path = log_path
+        self.step_log: StepLog | None = None
         self.start: StartRun | None = None
         self.result: RunResult | None = None
         self.exit_code = 0
@@ -328,9 +375,9 @@ class MonitorService(DaemonBase[MonitorConfig]):
     def truth_late(self) -> int:
         return self.core.truth.late
 
-    @property
-    def metrics(self) -> MetricsRecorder:
-        return self.core.truth.metrics
+    def metrics(self) -> RunMetrics:
+        """The run's metrics so far, from same-step truth only."""
+        return self.core.truth.metrics()
 
     @property
     def trace_rows(self) -> list[TraceRow]:
@@ -375,12 +422,20 @@ class MonitorService(DaemonBase[MonitorConfig]):
             if core.failure is not None:
                 self.exit_code = 1
                 log.error("run failed: %s", core.failure)
-        if self.start is None:
-            return
-        self.result = self.build_result()
-        if cfg.json_out is not None:
-            cfg.json_out.parent.mkdir(parents=True, exist_ok=True)
-            cfg.json_out.write_text(self.result.to_json() + "\n")
+        try:
+            if self.start is None:
+                return
+            self.result = self.build_result()
+            if cfg.json_out is not None:
+                cfg.json_out.parent.mkdir(parents=True, exist_ok=True)
+                cfg.json_out.write_text(self.result.to_json() + "\n")
+            if self.step_log is not None:
+                self.step_log.end(
+                    self.time_fn(), self.done_reason, self.failure, self.core.truth.next_step
+                )
+        finally:
+            if self.step_log is not None:
+                self.step_log.close()
 
     def _send_start(self) -> None:
         """Publish the start message: made and logged the first time, then repeated."""
@@ -405,6 +460,11 @@ class MonitorService(DaemonBase[MonitorConfig]):
             )
             self.start = start
             self._start_payload = encode_control(start)
+            if self.step_log_path is not None:
+                self.step_log = StepLog(self.step_log_path)
+                self.step_log.start(
+                    start, origin(cfg.scenario).scenario_file, sorted(self.may_crash)
+                )
             if cfg.start_file is not None:
                 _write_start_file(cfg.start_file, start)
             log.info(
@@ -432,7 +492,9 @@ class MonitorService(DaemonBase[MonitorConfig]):
     def _on_truth(self, key: str, payload: bytes) -> None:
         report = self.shell.run_truth(key, payload, self.start)
         if report is not None:
-            self.core.on_truth(self.time_fn(), report)
+            now = self.time_fn()
+            if self.core.on_truth(now, report) and self.step_log is not None:
+                self.step_log.truth(now, report)
             if self.core.done_reason is not None:  # else nothing for the loop to do yet
                 self._wake.set()
 
@@ -447,15 +509,8 @@ class MonitorService(DaemonBase[MonitorConfig]):
             merge_snapshots([report.snapshot])
         except ValueError as exc:
             raise PlumbingError(f"stats of {report.node}: {exc}") from None
-        prev = self.reports.get(report.node)
-        boot = report.snapshot.get("boot")
-        prev_boot = None if prev is None else prev.snapshot.get("boot")
-        if prev is not None and None not in (boot, prev_boot) and prev_boot != boot:
-            # A restarted daemon: keep what its earlier incarnation counted.
-            self.earlier_reports.setdefault(report.node, []).append(prev)
-            prev = None
-        if prev is None or not prev.final:
-            self.reports[report.node] = report
+        if self.book.add(report) and self.step_log is not None:
+            self.step_log.stats(self.time_fn(), report)
         self.core.on_stats(report.node, self.reports[report.node].final)
         self._wake.set()
 
@@ -470,62 +525,248 @@ class MonitorService(DaemonBase[MonitorConfig]):
         start = self.start
         if start is None:
             raise RuntimeError("no run was started")
-        sim_s = self.last_t or 0.0
         end = self.end_wall if self.end_wall is not None else self.time_fn()
-        wall_s = max(0.0, end - start.epoch_unix)
-        snapshots = [r.snapshot for n, r in sorted(self.reports.items()) if n in self.expected]
-        snapshots += [
+        return assemble_result(
+            self.scenario,
+            origin(self.config.scenario),
+            start,
+            self.core.truth,
+            self.book,
+            wall_s=max(0.0, end - start.epoch_unix),
+            end_reason=self.done_reason or self.failure,
+            error=self.failure,
+            may_crash=self.may_crash,
+            crashes=self.crashes,
+            trace=self.config.trace,
+        )
+
+
+class StatsBook:
+    """The stats reports of one run that count: per expected node the latest (the final
+    one once it came) and the latest of each earlier incarnation (another ``boot``)."""
+
+    def __init__(self, expected: frozenset[str]) -> None:
+        self.expected = expected
+        self.reports: dict[str, StatsReport] = {}
+        self.earlier: dict[str, list[StatsReport]] = {}
+
+    def add(self, report: StatsReport) -> bool:
+        """Take a (validated) report of the run; whether it was kept."""
+        prev = self.reports.get(report.node)
+        boot = report.snapshot.get("boot")
+        prev_boot = None if prev is None else prev.snapshot.get("boot")
+        if prev is not None and None not in (boot, prev_boot) and prev_boot != boot:
+            # A restarted daemon: keep what its earlier incarnation counted.
+            self.earlier.setdefault(report.node, []).append(prev)
+            prev = None
+        if prev is None or not prev.final:
+            self.reports[report.node] = report
+            return True
+        return False
+
+    def snapshots(self) -> list[Mapping[str, Any]]:
+        """The latest snapshot of every incarnation of every expected node."""
+        out = [r.snapshot for n, r in sorted(self.reports.items()) if n in self.expected]
+        out += [
             r.snapshot
-            for n, reports in sorted(self.earlier_reports.items())
+            for n, reports in sorted(self.earlier.items())
             if n in self.expected
             for r in reports
         ]
-        network = network_summary(snapshots, len(self.vehicles), len(self.rsus), sim_s)
-        extra: dict[str, Any] = {
-            "run_id": start.run_id,
-            "speed": start.speed,
-            "end_reason": self.done_reason or self.failure,
-            "truth": {
-                "steps": self.next_step,
-                "gaps": self.truth_gaps,
-                "late": self.truth_late,
-            },
-            "final_stats": sorted(n for n, r in self.reports.items() if r.final),
-            "network": network,
-            "epoch_unix": start.epoch_unix,
-            "actors": {
-                n: _actor_summary(r, self.earlier_reports.get(n, []))
-                for n, r in sorted(self.reports.items())
-                if n in self.expected
-            },
-        }
-        if self.may_crash:
-            extra["expect_crash"] = sorted(self.may_crash)
-            extra["crashes"] = list(self.crashes)
-        if self.config.trace:
-            extra["trace_fields"] = list(TRACE_FIELDS)
-            extra["trace"] = [list(row) for row in self.trace_rows]
-        if self.failure is not None:
-            extra["error"] = self.failure
-        return run_result(
-            self.metrics.result(),
-            mode=start.mode,
-            policy=start.policy if start.mode is RunMode.RSU else None,
-            seed=start.seed,
-            sim_s=sim_s,
-            wall_s=wall_s,
-            scenario=self.scenario.name,
-            start_times=dict(start.start_times),
-            harness="daemons",
-            provenance=provenance(
-                self.scenario,
-                origin(self.config.scenario),
-                ChannelParams(kind="zenoh"),
-                start.mode,
-                start.policy,
-            ),
-            **extra,
+        return out
+
+    def late_ticks(self) -> dict[str, int]:
+        """Per node that reported, its ``late_ticks`` summed over its incarnations."""
+        out: dict[str, int] = {}
+        for node, report in sorted(self.reports.items()):
+            if node in self.expected:
+                reports = [report, *self.earlier.get(node, [])]
+                out[node] = sum(_count(r.snapshot.get("late_ticks")) for r in reports)
+        return out
+
+
+def _count(value: object) -> int:
+    """A non-negative int counter from a peer's snapshot (anything else counts 0)."""
+    if isinstance(value, int) and not isinstance(value, bool) and value >= 0:
+        return value
+    return 0
+
+
+def assemble_result(
+    scenario: Scenario,
+    scenario_origin: Origin,
+    start: StartRun,
+    truth: TruthSteps,
+    book: StatsBook,
+    *,
+    wall_s: float,
+    end_reason: str | None,
+    error: str | None,
+    may_crash: frozenset[str] = frozenset(),
+    crashes: list[dict[str, Any]] | None = None,
+    trace: bool = False,
+    late_ticks: Mapping[str, int] | None = None,
+    rebuilt_from: str | None = None,
+) -> RunResult:
+    """A daemon run's result from the core's truth table and the kept stats reports (the
+    monitor at the end of a run, and :func:`rebuild_result` from a step log).
+
+    ``late_ticks`` (per node) raise what the stats say (an actor's own log may know
+    more than its last report that arrived). ``degraded``: a truth gap or a late tick.
+    """
+    sim_s = truth.last_t or 0.0
+    vehicles = start.vehicles
+    network = network_summary(book.snapshots(), len(vehicles), len(start.rsus), sim_s)
+    late = book.late_ticks()
+    for node, n in (late_ticks or {}).items():
+        if node in book.expected:
+            late[node] = max(late.get(node, 0), n)
+    gaps = truth.truth_gaps()
+    extra: dict[str, Any] = {
+        "run_id": start.run_id,
+        "speed": start.speed,
+        "end_reason": end_reason,
+        "truth": {"steps": truth.next_step, "gaps": sum(gaps.values()), "late": truth.late},
+        "final_stats": sorted(n for n, r in book.reports.items() if r.final),
+        "network": network,
+        "epoch_unix": start.epoch_unix,
+        "actors": {
+            n: _actor_summary(r, book.earlier.get(n, []))
+            for n, r in sorted(book.reports.items())
+            if n in book.expected
+        },
+        "degraded": any(gaps.values()) or any(late.values()),
+        "truth_gaps": gaps,
+        "late_ticks": late,
+    }
+    if may_crash:
+        extra["expect_crash"] = sorted(may_crash)
+        extra["crashes"] = list(crashes or [])
+    if trace:
+        extra["trace_fields"] = list(TRACE_FIELDS)
+        extra["trace"] = [list(row) for row in truth.trace_rows]
+    if error is not None:
+        extra["error"] = error
+    if rebuilt_from is not None:
+        extra["rebuilt_from"] = rebuilt_from
+    return run_result(
+        truth.metrics(),
+        mode=start.mode,
+        policy=start.policy if start.mode is RunMode.RSU else None,
+        seed=start.seed,
+        sim_s=sim_s,
+        wall_s=wall_s,
+        scenario=scenario.name,
+        start_times=dict(start.start_times),
+        harness="daemons",
+        provenance=provenance(
+            scenario, scenario_origin, ChannelParams(kind="zenoh"), start.mode, start.policy
+        ),
+        **extra,
+    )
+
+
+_LATE_LINE: Final = re.compile(r"run (\S+) ticks: late_ticks=(\d+)")
+"""The line an actor logs at the end of a run (``services.edge.shell.DaemonShell.end_run``)."""
+
+
+def logged_late_ticks(run_dir: Path, run_id: str) -> dict[str, int]:
+    """Per node, the ``late_ticks`` its log ``<run_dir>/<node>.log`` reported for ``run_id``
+    (the largest, over incarnations: a restarted daemon appends to the same log)."""
+    out: dict[str, int] = {}
+    for path in sorted(run_dir.glob("*.log")):
+        try:
+            text = path.read_text(encoding="utf-8", errors="replace")
+        except OSError:
+            continue
+        for m in _LATE_LINE.finditer(text):
+            if m.group(1) == run_id:
+                out[path.stem] = out.get(path.stem, 0) + int(m.group(2))
+    return out
+
+
+def rebuild_result(run_dir: Path, step_log: Path | None = None) -> RunResult:
+    """A run's result rebuilt from what is in ``run_dir``: the monitor's step log
+    (``step_log``, default the one ``*.steps.jsonl`` there, ``result.steps.jsonl`` first)
+    replayed through the monitor's core, the stats reports it kept, and the late ticks
+    the actors logged. Partial (``error``) unless the log has the monitor's ``end``.
+
+    Raises ``StepLogError`` (a ``ValueError``) when there is no usable step log or
+    its scenario cannot be loaded.
+    """
+    path = step_log if step_log is not None else _find_step_log(run_dir)
+    record = read_step_log(path)
+    head = record.start
+    try:
+        start = StartRun(
+            run_id=str(head["run_id"]),
+            scenario=str(head["scenario"]),
+            mode=RunMode(head["mode"]),
+            policy=Policy(head["policy"]),
+            seed=int(head["seed"]),
+            start_times={str(k): float(v) for k, v in dict(head["start_times"]).items()},
+            epoch_unix=float(head["epoch_unix"]),
+            speed=float(head["speed"]),
+            max_sim_s=float(head["max_sim_s"]),
+            monitor="monitor",
+            vehicles=tuple(str(v) for v in head["vehicles"]),
+            rsus=tuple(str(r) for r in head["rsus"]),
         )
+    except (KeyError, TypeError, ValueError) as exc:
+        raise StepLogError(f"{path}: bad start line ({exc})") from None
+    where = head.get("scenario_file") or start.scenario
+    try:
+        scenario = load_scenario(where)
+    except ScenarioError as exc:
+        raise StepLogError(f"{path}: scenario {where}: {exc}") from None
+    truth = TruthSteps(scenario, start.vehicles, speed=start.speed, max_sim_s=start.max_sim_s)
+    book = StatsBook(frozenset(start.vehicles + start.rsus))
+    last_wall = start.epoch_unix
+    for wall, event in record.events:
+        last_wall = max(last_wall, wall)
+        if isinstance(event, StatsReport):
+            book.add(event)
+            continue
+        run_t = (wall - start.epoch_unix) * start.speed
+        truth.advance(run_t)  # the steps the monitor closed at its deadlines meanwhile
+        truth.on_report(run_t, event)
+    end = record.end
+    steps = None if end is None else end.get("steps")
+    truth.close(steps if isinstance(steps, int) and steps >= 0 else None)
+    if end is not None:
+        error = end.get("error")
+        reason = end.get("reason") or error
+    else:
+        error = (
+            f"the monitor ended before the run was over (no end in {path.name}); "
+            "partial result rebuilt from its step log"
+        )
+        reason = error
+    return assemble_result(
+        scenario,
+        origin(where),
+        start,
+        truth,
+        book,
+        wall_s=max(0.0, last_wall - start.epoch_unix),
+        end_reason=None if reason is None else str(reason),
+        error=None if error is None else str(error),
+        may_crash=frozenset(str(n) for n in head.get("expect_crash") or ()),
+        trace=True,
+        late_ticks=logged_late_ticks(run_dir, start.run_id),
+        rebuilt_from=str(path),
+    )
+
+
+def _find_step_log(run_dir: Path) -> Path:
+    preferred = run_dir / "result.steps.jsonl"
+    if preferred.is_file():
+        return preferred
+    found = sorted(run_dir.glob("*.steps.jsonl"))
+    if len(found) != 1:
+        what = "no" if not found else f"{len(found)}"
+        raise StepLogError(f"{what} step log (*.steps.jsonl) in {run_dir}")
+    return found[0]
 
 
 def _v2x_totals(snapshot: Mapping[str, Any]) -> dict[str, int]:
@@ -615,6 +856,12 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "--trace", action="store_true", default=None, help="add the per-step trace to the result"
     )
     group.add_argument(
+        "--step-log",
+        type=output_file,
+        metavar="FILE",
+        help="append every kept truth/stats report here (default: <json stem>.steps.jsonl)",
+    )
+    group.add_argument(
         "--start-file",
         type=output_file,
         metavar="FILE",
@@ -636,6 +883,7 @@ _FLAGS: Final = {
     "expect_crash": "expect_crash",
     "trace": "trace",
     "start_file": "start_file",
+    "step_log": "step_log",
 }
 
 
@@ -654,6 +902,9 @@ def run(args: argparse.Namespace) -> int:
     if service.result is not None:
         sys.stdout.write(format_summary(service.result) + "\n")
         sys.stdout.write(format_network(service.result.network) + "\n")
+        degraded = format_degraded(service.result)
+        if degraded is not None:
+            sys.stdout.write(degraded + "\n")
         if service.failure is not None:
             sys.stdout.write(f"run FAILED: {service.failure}\n")
         sys.stdout.flush()

@@ -254,6 +254,10 @@ class DaemonShell:
         self.plumbing_malformed = 0
         self.internal_errors = 0
         """Exceptions our own handlers raised (bugs); the first one stops the daemon."""
+        self.late_ticks = 0
+        """Ticks of this run that ran more than one tick period behind the run clock."""
+        self.max_tick_lag_s = 0.0
+        """Largest lag of a tick behind its due time in this run [run s]."""
         self.fault: str | None = None
         """What failed first, once a handler raised."""
         self.faulted = asyncio.Event()
@@ -348,6 +352,8 @@ class DaemonShell:
         """Fresh counters and the run clock of a new run; acknowledges it with a stats report."""
         self.stats = NodeStats(self.node)
         self.run_id = run_id
+        self.late_ticks = 0
+        self.max_tick_lag_s = 0.0
         self.clock = RunClock(epoch_unix, speed, time_fn=self.time_fn)
         self.publish_stats(final=False)
         return self.clock
@@ -358,6 +364,14 @@ class DaemonShell:
             return
         if drain_s > 0:
             await asyncio.sleep(drain_s)
+        # One parsable line per run, kept in the node's log: what ``crosspath results
+        # rebuild`` reads when the monitor died and never got the final stats report.
+        self.log.info(
+            "run %s ticks: late_ticks=%d max_tick_lag_s=%.3f",
+            self.run_id,
+            self.late_ticks,
+            self.max_tick_lag_s,
+        )
         self.publish_stats(final=True)
         self.run_id = None
         self.clock = None
@@ -366,6 +380,14 @@ class DaemonShell:
     def now(self) -> float | None:
         """Run time now, or None when no run is active."""
         return None if self.clock is None else self.clock.now()
+
+    def on_tick(self, due_s: float, now_s: float, period_s: float) -> None:
+        """A control-loop tick due at run time ``due_s`` ran at ``now_s`` [run s]; more
+        than ``period_s`` behind counts in ``late_ticks``."""
+        lag = now_s - due_s
+        if lag > period_s:
+            self.late_ticks += 1
+        self.max_tick_lag_s = max(self.max_tick_lag_s, lag)
 
     def run_truth(self, key: str, payload: bytes, start: StartRun | None) -> TruthReport | None:
         """A car's ground truth of run ``start``; None outside a run or for another run.
@@ -532,6 +554,9 @@ class DaemonShell:
         snapshot = self.stats.snapshot(self.now())
         snapshot["plumbing_malformed"] = self.plumbing_malformed
         snapshot["internal_errors"] = self.internal_errors
+        if self.run_id is not None:
+            snapshot["late_ticks"] = self.late_ticks
+            snapshot["max_tick_lag_s"] = round(self.max_tick_lag_s, 4)
         if self._extras is not None:
             snapshot.update(self._extras())
         return StatsReport(node=self.node, run_id=self.run_id, final=final, snapshot=snapshot)
@@ -758,7 +783,10 @@ class ActorDaemon(DaemonBase[C]):
     ) -> AsyncIterator[tuple[int, float]]:
         """Steps ``first, first + 1, ...`` at ``hz`` on the run clock: each (step, run time
         [s]) once that time has come. Ends when ``halt`` is set, or past ``max_sim_s`` +
-        :data:`END_MARGIN_S` (the monitor is gone: the run is ended)."""
+        :data:`END_MARGIN_S` (the monitor is gone: the run is ended). A tick that runs
+        more than one period behind its time counts in the shell's ``late_ticks``
+        (published in the stats; the monitor marks the run ``degraded``): a loop that
+        falls behind still runs every step, late, instead of skipping any."""
         dt = 1.0 / hz
         limit = start.max_sim_s + END_MARGIN_S
         step = first
@@ -769,6 +797,7 @@ class ActorDaemon(DaemonBase[C]):
             if now > limit:
                 self._end(f"run time passed max_sim_s ({start.max_sim_s:g} s)")
                 return
+            self.shell.on_tick(now, clock.now(), dt)
             yield step, now
             step += 1
 

@@ -15,6 +15,7 @@ Polygons (buildings, conflict zones) are convex; either vertex order is accepted
 
 from __future__ import annotations
 
+import functools
 import math
 from bisect import bisect_right
 from collections.abc import Sequence
@@ -50,9 +51,15 @@ __all__ = [
     "rect_distances",
     "rects_overlap",
     "segment_blocked",
+    "vertex_curvature",
     "visible_mask",
     "wrap_angle",
 ]
+
+KINK_SPAN_M = 4.0
+"""A polyline corner is driven as if its heading change were spread over at most this
+arc length [m]: an unrounded 90° corner is then a ~2.5 m radius (a rounded one, see
+``corner_radius_m``, has its true radius)."""
 
 
 def wrap_angle(a: float) -> float:
@@ -253,6 +260,41 @@ class Polyline:
             raise ValueError("polyline: empty slice")
         inner = self.cumlen[(self.cumlen > s0 + 1e-9) & (self.cumlen < s1 - 1e-9)]
         return Polyline(self.points_at(np.concatenate(([s0], inner, [s1]))))
+
+
+def vertex_curvature(line: Polyline) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """Curvature of a polyline at its vertices: ``(s, kappa, before, after)``, all (N,).
+
+    ``kappa`` [1/m] is the vertex's heading change divided by the shorter of its
+    adjacent segments (at most ``KINK_SPAN_M``): for a circular arc sampled by equal
+    chords (``fillet_polyline``) that is exactly 1/r inside the arc. ``before`` and
+    ``after`` [m] are how far the curvature holds on either side of the vertex (that
+    same span, so every chord of an arc is covered by its end vertices). End points
+    have zero curvature. Cached per polyline (they are immutable).
+    """
+    return _vertex_curvature(line)
+
+
+@functools.lru_cache(maxsize=256)
+def _vertex_curvature(line: Polyline) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    n = len(line.points)
+    seg = np.asarray(line._seglen, dtype=np.float64)
+    head = np.asarray(line._heading, dtype=np.float64)
+    kappa = np.zeros(n, dtype=np.float64)
+    before = np.zeros(n, dtype=np.float64)
+    after = np.zeros(n, dtype=np.float64)
+    if n > 2:
+        turn = np.abs((np.diff(head) + math.pi) % (2.0 * math.pi) - math.pi)
+        span = np.minimum(np.minimum(seg[:-1], seg[1:]), KINK_SPAN_M)
+        kappa[1:-1] = turn / span
+        before[1:-1] = span
+        after[1:-1] = span
+    return (
+        _readonly(line.cumlen.copy()),
+        _readonly(kappa),
+        _readonly(before),
+        _readonly(after),
+    )
 
 
 def fillet_polyline(

@@ -12,24 +12,28 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from services.model.geometry import FloatArray, footprint
+import numpy as np
+
+from services.model.geometry import FloatArray, Polyline, footprint, vertex_curvature
 from services.model.limits import SPEED_CAP_FACTOR, STANDING_MPS
 
-__all__ = ["BodyState", "Limits", "TruthState", "step"]
+__all__ = ["BodyState", "Limits", "TruthState", "curve_speed_cap", "step"]
 
 
 @dataclass(frozen=True, slots=True)
 class Limits:
-    """Dynamic limits of one car: m/s, m/s², s. Decelerations are positive numbers."""
+    """Dynamic limits of one car: m/s, m/s², s. Decelerations are positive numbers;
+    ``lat_accel`` is the lateral acceleration allowed in curves [m/s²]."""
 
     v_max: float
     accel: float
     decel_comfort: float
     decel_emergency: float
     actuator_lag_s: float
+    lat_accel: float = 2.0
 
     def __post_init__(self) -> None:
-        for name in ("v_max", "accel", "decel_comfort", "decel_emergency"):
+        for name in ("v_max", "accel", "decel_comfort", "decel_emergency", "lat_accel"):
             val = getattr(self, name)
             if not (math.isfinite(val) and val > 0.0):
                 raise ValueError(f"Limits.{name} must be finite and > 0, got {val!r}")
@@ -134,3 +138,40 @@ def step(state: BodyState, a_cmd: float, dt: float, limits: Limits) -> BodyState
         v1 = cap
         a1 = min(a1, 0.0)
     return BodyState(s1, v1, a1)
+
+
+def curve_speed_cap(
+    line: Polyline, s: FloatArray, lat_accel: float, v_max: float, pad_m: float = 0.0
+) -> FloatArray:
+    """Speed cap [m/s] at arc lengths ``s`` [m] of ``line`` from its curvature:
+    ``min(v_max, sqrt(lat_accel / kappa))``, i.e. lateral acceleration ≤ ``lat_accel``.
+
+    Each vertex's curvature (``geometry.vertex_curvature``) holds over the span
+    on either side of it (at most ``geometry.KINK_SPAN_M``), widened by
+    ``pad_m`` on both sides: a sampled profile that interpolates between grid
+    points ``pad_m`` apart then never exceeds the cap inside the curve. Pure; the
+    vehicle planner and the RSU both use it, so a car's own plan and its
+    coordinated path respect the same limit.
+    """
+    if not (math.isfinite(lat_accel) and lat_accel > 0.0):
+        raise ValueError(f"curve_speed_cap: lat_accel must be finite and > 0, got {lat_accel!r}")
+    if not (math.isfinite(v_max) and v_max > 0.0):
+        raise ValueError(f"curve_speed_cap: v_max must be finite and > 0, got {v_max!r}")
+    sa = np.asarray(s, dtype=np.float64)
+    out: FloatArray = np.full(sa.shape, v_max, dtype=np.float64)
+    sv, kappa, lo, hi = vertex_curvature(line)
+    cap_v = np.sqrt(lat_accel / np.maximum(kappa, 1e-12))
+    curved = np.flatnonzero(cap_v < v_max)
+    if curved.size == 0 or sa.size == 0:
+        return out
+    s_lo = sv[curved] - lo[curved] - pad_m
+    s_hi = sv[curved] + hi[curved] + pad_m
+    # only vertices whose window meets the queried range
+    near = (s_hi >= float(sa.min())) & (s_lo <= float(sa.max()))
+    if not bool(np.any(near)):
+        return out
+    s_lo, s_hi, caps = s_lo[near], s_hi[near], cap_v[curved][near]
+    inside = (sa.reshape(-1, 1) >= s_lo[None, :]) & (sa.reshape(-1, 1) <= s_hi[None, :])
+    binding = np.where(inside, caps[None, :], np.inf).min(axis=1).reshape(sa.shape)
+    out = np.minimum(out, binding)
+    return out

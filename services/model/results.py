@@ -15,8 +15,9 @@ value is NaN or infinite: an unmeasured gap or PET is ``None`` (JSON ``null``).
 Sections that only some runs have are ``None`` and then *absent* from the JSON
 (not ``null``), so every file keeps the shape it had before the result was
 typed: daemon runs add ``run_id``, ``speed``, ``end_reason``, ``truth``,
-``final_stats``, ``network``, ``epoch_unix``, ``actors`` (and ``expect_crash``,
-``crashes``, ``trace_fields``, ``trace``, ``error`` when they apply); lab runs
+``final_stats``, ``network``, ``epoch_unix``, ``actors``, ``degraded``,
+``truth_gaps``, ``late_ticks`` (and ``expect_crash``, ``crashes``,
+``trace_fields``, ``trace``, ``error``, ``rebuilt_from`` when they apply); lab runs
 add ``lab``; in-process and lab runs add ``loss``. ``provenance`` says what
 produced the run: package version, git commit when known, the scenario's name,
 file and sha256, every channel parameter, the policy and its parameters.
@@ -143,8 +144,9 @@ class NetworkSection(BaseModel):
 
 class TruthCounts(_Frozen):
     """How the monitor assembled the ground truth: physics ``steps`` recorded, car
-    reports missing at their step (``gaps``, filled with the car's latest) and reports
-    that came after their step was recorded (``late``)."""
+    reports missing at their step (``gaps``, never filled in: the sum of
+    ``truth_gaps``) and reports that came after their step was closed (``late``;
+    still that step's truth, so they count in the safety metrics)."""
 
     steps: Count
     gaps: Count
@@ -152,7 +154,8 @@ class TruthCounts(_Frozen):
 
 
 class CrashEvent(_Frozen):
-    """An expected crash node's liveliness ``lost`` or ``back`` at run time ``t_s``."""
+    """A node's liveliness ``lost`` or ``back`` at run time ``t_s``: an expected crash node's
+    (the monitor), or an actor the launcher saw exit unexpectedly (``lost`` only)."""
 
     node: str
     event: Literal["lost", "back"]
@@ -227,6 +230,10 @@ _OPTIONAL: Final = frozenset(
         "trace_fields",
         "trace",
         "error",
+        "degraded",
+        "truth_gaps",
+        "late_ticks",
+        "rebuilt_from",
         "lab",
         "provenance",
     }
@@ -281,6 +288,18 @@ class RunResult(_Frozen):
     trace: list[TraceRow] | None = None
     error: str | None = None
     """Why the run failed; None when it completed."""
+    degraded: bool | None = None
+    """Daemon runs: the run is not a clean measurement, its safety metrics may miss
+    something: some car's truth is missing at some step (``truth_gaps``) or some
+    actor's control loop ran more than a tick behind the run clock (``late_ticks``)."""
+    truth_gaps: dict[str, Count] | None = None
+    """Per car, recorded physics steps its ground truth is missing from (daemon runs;
+    never filled in from another step: those steps measure nothing for its pairs)."""
+    late_ticks: dict[str, Count] | None = None
+    """Per actor, control-loop ticks that ran more than one tick period behind the run
+    clock (from its stats; daemon runs)."""
+    rebuilt_from: str | None = None
+    """The step log this result was rebuilt from (``crosspath results rebuild``)."""
     lab: dict[str, Any] | None = None
     """The network lab's section (``services.supervise.lab.runner``)."""
     provenance: Provenance | None = None

@@ -47,6 +47,7 @@ from pydantic import (
 
 from protocol import Kind, max_points
 from protocol.codec import (
+    MAX_ACCEL_MPS2,
     MAX_COORD_M,
     MAX_LENGTH_M,
     MAX_RADIUS_M,
@@ -182,6 +183,15 @@ def _check_wire_speed(v: float | None) -> float | None:
     return v
 
 
+def _check_wire_accel(v: float | None) -> float | None:
+    """A car declares its accelerations in its paths in 0.1 m/s² bytes (SPEC.md 2.3)."""
+    if v is not None and not 0.1 <= v <= MAX_ACCEL_MPS2:
+        raise ValueError(
+            f"{v} m/s²: a car's paths carry its accelerations as 0.1..{MAX_ACCEL_MPS2:g} m/s²"
+        )
+    return v
+
+
 def _wire_size(what: str, most: float) -> Callable[[float], float]:
     """A validator: sizes the wire carries in whole centimetres, from 1 cm to ``most`` m."""
 
@@ -214,6 +224,8 @@ class Params(_Model):
     decel_comfort_mps2: PosF = 2.0
     decel_emergency_mps2: PosF = 5.0
     actuator_lag_s: NonNegF = 0.3
+    lat_accel_mps2: PosF = 2.0
+    """Lateral acceleration a car allows itself in curves: speed <= sqrt(a_lat * r) [m/s²]."""
     physics_hz: PosInt = 20
     planning_hz: PosInt = 10
     sensor_range_m: PosF = 80.0
@@ -228,6 +240,9 @@ class Params(_Model):
     goal_tolerance_m: PosF = 1.0
 
     _wire_speed = field_validator("v_max_mps")(_check_wire_speed)
+    _wire_accel = field_validator("accel_mps2", "decel_comfort_mps2", "lat_accel_mps2")(
+        _check_wire_accel
+    )
 
     @field_validator("future_path_points")
     @classmethod
@@ -326,8 +341,12 @@ class DynamicsOverrides(_Model):
     decel_comfort_mps2: PosF | None = None
     decel_emergency_mps2: PosF | None = None
     actuator_lag_s: NonNegF | None = None
+    lat_accel_mps2: PosF | None = None
 
     _wire_speed = field_validator("v_max_mps")(_check_wire_speed)
+    _wire_accel = field_validator("accel_mps2", "decel_comfort_mps2", "lat_accel_mps2")(
+        _check_wire_accel
+    )
 
 
 def _start_kind(v: Any) -> str | None:
@@ -1010,4 +1029,5 @@ def limits_from_params(params: Params, overrides: DynamicsOverrides | None = Non
         decel_comfort=pick("decel_comfort_mps2"),
         decel_emergency=pick("decel_emergency_mps2"),
         actuator_lag_s=pick("actuator_lag_s"),
+        lat_accel=pick("lat_accel_mps2"),
     )

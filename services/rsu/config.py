@@ -38,7 +38,9 @@ class RsuConfig:
     ``center`` is the centre of coverage [m] (the beacon's position);
     ``conflict_zone`` the convex intersection box (K, 2) [m] whose centroid is
     the intersection centre used for "leaving". Times [s], speeds [m/s],
-    accelerations [m/s²]. The fields after ``beacon_period_s`` tune the
+    accelerations [m/s²]. The speed and acceleration limits are the defaults for a
+    car whose paths declare none (each car is planned with its own, see
+    ``services.rsu.velocity``). The fields after ``beacon_period_s`` tune the
     ``slot`` policy and the stop holds (see ``services.rsu.velocity``).
     """
 
@@ -55,6 +57,7 @@ class RsuConfig:
     v_max_mps: float = _PAPER.v_max_mps
     accel_mps2: float = _PAPER.accel_mps2
     decel_comfort_mps2: float = _PAPER.decel_comfort_mps2
+    lat_accel_mps2: float = _PAPER.lat_accel_mps2
     policy: Policy = Policy.PAPER
     # the knobs of [rsu_params] (services.model.scenario.RsuParams documents each)
     command_repeat_s: float = _KNOBS.command_repeat_s
@@ -86,6 +89,7 @@ class RsuConfig:
             "v_max_mps",
             "accel_mps2",
             "decel_comfort_mps2",
+            "lat_accel_mps2",
             "command_repeat_s",
             "beacon_period_s",
             "slot_step_s",
@@ -128,6 +132,7 @@ def rsu_config(scenario: Scenario, rsu_id: str, policy: Policy) -> RsuConfig:
         v_max_mps=p.v_max_mps,
         accel_mps2=p.accel_mps2,
         decel_comfort_mps2=p.decel_comfort_mps2,
+        lat_accel_mps2=p.lat_accel_mps2,
         policy=policy,
         command_repeat_s=knobs.command_repeat_s,
         beacon_period_s=knobs.beacon_period_s,

@@ -29,6 +29,10 @@ traceback and exits, see ``services.edge.shell``).
 
 ``tick(now)`` (10 Hz) expires silent cars, repeats pending commands every
 ``command_repeat_s`` and sends the beacon every ``beacon_period_s``.
+
+A new core (a cold start or a restart after a crash) first listens for
+``listen_s`` (default one ``expiry_s``) and keeps the crossing order of committed
+cars (both in ``services.rsu.modes``).
 """
 
 from __future__ import annotations
@@ -58,7 +62,7 @@ from services.model.types import Policy
 from services.rsu import paths
 from services.rsu.config import RsuConfig
 from services.rsu.modes import Action, RsuEvent, transition
-from services.rsu.reservation import Conflict, ReservationTable, within_wire_bounds
+from services.rsu.reservation import Conflict, ReservationTable, oversize, within_wire_bounds
 from services.rsu.velocity import SpeedPlan, VelocityManager
 
 __all__ = ["Outgoing", "Policy", "RsuConfig", "RsuCore", "path_problem"]
@@ -104,6 +108,7 @@ class _Car:
     last_ap_us: int = -(2**62)
     autonomous: VehiclePath | None = None  # latest path it would drive alone
     pending: _Pending | None = None
+    claim: Mode = Mode.AUTO  # the mode its latest future path shows
 
     def observe(self, path: VehiclePath) -> None:
         if path.header.time_us >= self.state_us:
@@ -111,6 +116,11 @@ class _Car:
             self.x, self.y = path.x, path.y
             self.heading, self.speed = path.heading, path.speed
             self.length, self.width = path.length, path.width
+
+    @property
+    def shape(self) -> tuple[float, float]:
+        """Length, width [m]: what its conflict margin grows with."""
+        return self.length, self.width
 
 
 def path_problem(path: VehiclePath) -> str | None:
@@ -139,8 +149,16 @@ def path_problem(path: VehiclePath) -> str | None:
 class RsuCore:
     """One roadside unit's decision logic (pure; see module docstring)."""
 
-    def __init__(self, config: RsuConfig) -> None:
+    def __init__(self, config: RsuConfig, *, listen_s: float | None = None) -> None:
+        """``listen_s`` [s, >= 0]: how long the core only listens after its first input
+        (default one reservation expiry, see ``services.rsu.modes``)."""
+        listen = config.expiry_s if listen_s is None else listen_s
+        if not (isinstance(listen, int | float) and math.isfinite(listen) and listen >= 0):
+            raise ValueError(f"listen_s must be finite and >= 0 [s], got {listen_s!r}")
         self.config = config
+        self.listen_s = float(listen)
+        self._listen_from: float | None = None
+        self._listened = False
         self.table = ReservationTable(config.d_margin_m, config.headway_s, config.expiry_s)
         self.velocity = VelocityManager(config)
         self.counters: collections.Counter[str] = collections.Counter()
@@ -182,6 +200,27 @@ class RsuCore:
         known = self._cars.pop(vehicle, None) is not None
         return self.table.remove(vehicle) or known
 
+    def listening(self, now: float) -> bool:
+        """Still in the listening period (nothing commanded yet): ``listen_s`` from the first
+        input, longer (by at most one ``expiry_s``, and only when ``listen_s`` > 0) while a
+        car still claims a coordinated mode, which it cannot have from us. Once over, over.
+        """
+        if self._listened:
+            return False
+        if self._listen_from is None:
+            self._listen_from = now
+        end = self._listen_from + self.listen_s
+        if now + _DUE_SLACK_S < end:
+            return True
+        if (
+            self.listen_s > 0
+            and now + _DUE_SLACK_S < end + self.config.expiry_s
+            and any(car.claim != Mode.AUTO for car in self._cars.values())
+        ):
+            return True
+        self._listened = True
+        return False
+
     # -- inputs ---------------------------------------------------------------------------
 
     def on_message(
@@ -202,6 +241,8 @@ class RsuCore:
         """Count and log (debug) a path that fails :func:`path_problem`."""
         problem = path_problem(path)
         if problem is None:
+            if oversize(path.length, path.width):
+                self.counters["oversize"] += 1  # kept, its margin grows only to the cap
             return False
         self.counters["invalid"] += 1
         self.counters[f"invalid_{problem}"] += 1
@@ -216,6 +257,7 @@ class RsuCore:
 
     def tick(self, now: float) -> list[Outgoing]:
         """Periodic work (10 Hz): expiry of silent cars, command repeats, the beacon."""
+        self.listening(now)  # the listening period starts with the first input
         out: list[Outgoing] = []
         for vehicle in self.table.expire(now):
             self._apply_silent(vehicle)
@@ -270,6 +312,14 @@ class RsuCore:
             self._cars[vehicle] = car
             self.counters["vehicles_seen"] += 1
         car.observe(fp)
+        car.claim = fp.mode
+        if self.listening(now):
+            # A (re)started RSU first learns every car's path and mode claim: each path is
+            # reserved as the car drives it, and nobody is commanded yet.
+            car.autonomous = fp
+            self._reserve(now, car, fp.points)
+            self.counters["fp_listened"] += 1
+            return []
         coordinated = car.mode != Mode.AUTO
         if coordinated and self._leaving(car):
             return self._apply(now, car, RsuEvent.LEAVING, fp, None)
@@ -341,11 +391,94 @@ class RsuCore:
         if car.mode != Mode.AUTO:
             return True  # C_SLOW was already judged with the margins; C_FAST stays anyway
         cfg = self.config
-        found = self.table.conflicts(car.vehicle, query, now, cfg.t_free_s, (), *self._margins)
+        found = self.table.conflicts(
+            car.vehicle, query, now, cfg.t_free_s, (), *self._margins, shape=car.shape
+        )
         return not found
 
+    def _occupancy(self, points: FloatArray, length: float) -> tuple[float, float] | None:
+        """When the car's body overlaps the conflict zone on this path: (first, last) [s].
+
+        The body overlaps while its centre is within half a length of the stretch of the
+        path inside the zone (sampled points: an approximation by a point spacing).
+        None when the path does not reach the zone.
+        """
+        if points.shape[0] == 0:
+            return None
+        inside = self._zone.contains(points[:, :2])
+        idx = np.flatnonzero(inside)
+        if idx.size == 0:
+            return None
+        s = paths.arc_length(points)
+        half = 0.5 * length
+        body = (s >= s[idx[0]] - half) & (s <= s[idx[-1]] + half)
+        times = points[body, 2]
+        return float(times.min()), float(times.max())
+
+    def _committed(self, car: _Car, points: FloatArray | None = None) -> bool:
+        """The car cannot comfortably stop before the zone any more: it is in the zone, or
+        its front is within its comfortable braking distance (plus ``stop_gap_m``) of the
+        zone's edge along ``points`` (default: its table entry)."""
+        if self._zone.contains_point(car.x, car.y):
+            return True
+        if points is None:
+            entry = self.table.get(car.vehicle)
+            if entry is None:
+                return False
+            points = entry.points
+        span = paths.zone_span(points, self._zone)
+        if span is None:
+            return False
+        s = paths.arc_length(points)
+        # from the point of the path nearest the car now (an entry may be older than now)
+        xy = points[: span[0] + 1, :2]
+        here = int(np.argmin(np.hypot(xy[:, 0] - car.x, xy[:, 1] - car.y)))
+        gap = float(s[span[0]] - s[here]) - 0.5 * car.length
+        braking = car.speed * car.speed / (2.0 * self._decel(car))
+        return gap <= braking + self.config.stop_gap_m
+
+    def _decel(self, car: _Car) -> float:
+        """The car's own comfortable deceleration [m/s²] (its path's limits, else ours)."""
+        path = car.autonomous
+        return (
+            self.velocity.default_limits.decel
+            if path is None
+            else self.velocity.limits_of(path).decel
+        )
+
+    def _order_clash(self, car: _Car, points: FloatArray, now: float) -> str | None:
+        """The first committed car (in ``C_FAST`` or :meth:`_committed`) whose zone occupancy
+        ``points`` would come within ``headway_s`` of, or None.
+
+        The table's point-pair check compares reference points within ``D_margin``; a
+        slow car's body occupies the zone far longer than that, so a crossing order is
+        checked on the zone occupancy of whole bodies too.
+        """
+        mine = self._occupancy(points, car.length)
+        if mine is None:
+            return None
+        headway = self.config.headway_s
+        for vehicle in self.table:
+            other = self._cars.get(vehicle)
+            entry = self.table.get(vehicle)
+            if vehicle == car.vehicle or other is None or entry is None:
+                continue
+            theirs = self._occupancy(entry.points, other.length)
+            if theirs is None or theirs[1] < now:
+                continue
+            overlaps = mine[0] < theirs[1] + headway and theirs[0] < mine[1] + headway
+            if overlaps and (other.mode == Mode.C_FAST or self._committed(other)):
+                return vehicle
+        return None
+
     def _yields(self, car: _Car, car_points: FloatArray, other: _Car) -> bool:
-        """Must ``car`` (whose path is ``car_points``) give way to ``other``?"""
+        """Must ``car`` (whose path is ``car_points``) give way to ``other``?
+
+        A car that can no longer stop before the zone never yields to one that can.
+        """
+        car_committed, other_committed = self._committed(car, car_points), self._committed(other)
+        if car_committed != other_committed:
+            return other_committed
         fast = Mode.C_FAST
         if car.mode == fast and other.mode != fast:
             return False
@@ -374,7 +507,9 @@ class RsuCore:
                 query = path.points
             # A slowing car is released only when it is clear by a margin (hysteresis).
             margins = self._margins if car.mode == Mode.C_SLOW else (0.0, 0.0)
-            found = self.table.conflicts(car.vehicle, query, now, cfg.t_free_s, (), *margins)
+            found = self.table.conflicts(
+                car.vehicle, query, now, cfg.t_free_s, (), *margins, shape=car.shape
+            )
             horizon = now + cfg.t_collision_s
             near = [c for c in found if c.time <= horizon]
             if found:
@@ -389,6 +524,15 @@ class RsuCore:
                 event = RsuEvent.CONFLICT
             elif not found and self._approaching(car, path, now) and self._clear(car, query, now):
                 event = RsuEvent.FREE_APPROACHING
+                if car.mode != Mode.C_FAST:
+                    # Promotion to C_FAST: the plan it would get must keep the headway
+                    # to every committed car's zone occupancy, else it waits its turn.
+                    plan = self.velocity.plan(car.vehicle, path, Mode.C_FAST, now, self.table)
+                    clash = self._order_clash(car, plan.points, now)
+                    if clash is not None:
+                        self.counters["order_kept"] += 1
+                        event = RsuEvent.CONFLICT
+                        plan = None
             else:
                 event = RsuEvent.NO_CONFLICT
         out = self._apply(now, car, event, path, plan)
@@ -440,7 +584,9 @@ class RsuCore:
             entry = self.table.get(car.vehicle)
             if entry is None:
                 return []
-            near = self.table.conflicts(car.vehicle, entry.points, now, self.config.t_collision_s)
+            near = self.table.conflicts(
+                car.vehicle, entry.points, now, self.config.t_collision_s, shape=car.shape
+            )
         out: list[Outgoing] = []
         for conflict in near:
             other = self._cars.get(conflict.vehicle)

@@ -50,6 +50,28 @@ Which path is judged, and who yields (our reading of the paper, where it is sile
   every ``command_repeat_s`` until the car's broadcast future path shows the
   commanded mode; until then, that car's future paths are not used for
   decisions (they do not reflect the command yet).
+
+A (re)started RSU, and committed cars (ours, issue 16; the paper is silent):
+
+* **Listening first.** A core commands nobody for ``listen_s`` (default one
+  ``expiry_s``, 0.5 s) after its first input: every future path it hears is
+  reserved as the car drives it, so when it starts deciding, its table holds
+  every car in coverage and no car is judged against an empty table. While a
+  car still shows a coordinated mode it cannot have from this core (given by
+  the crashed incarnation; it falls back after its 0.3 s coordinated timeout)
+  listening lasts on, by at most one more ``expiry_s``. At a cold start no car
+  is near the zone yet, so this changes nothing there.
+* **Committed cars keep their order.** A car is committed when it can no longer
+  stop comfortably before the zone: it is in it, or its front is within
+  ``v^2 / (2 decel_comfort) + stop_gap_m`` of the zone's edge along its path.
+  A committed car never yields to one that is not (this comes before the
+  ``C_FAST`` rules above), and a car is promoted to ``C_FAST`` only if the
+  plan it would get keeps ``headway_s`` between its body's zone occupancy and
+  that of every committed or ``C_FAST`` car; else the promotion is a
+  ``CONFLICT`` (it waits its turn in ``C_SLOW``; ``order_kept`` in the core's
+  counters). The occupancy check is needed besides the table's point pairs: a
+  slow car's body is in the zone far longer than its reference point is within
+  ``D_margin`` of the crossing.
 """
 
 from __future__ import annotations

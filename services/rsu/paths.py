@@ -34,6 +34,52 @@ line (8.5 m from the centre in the paper's scenario) or where it can see the cro
 road."""
 
 
+CURVE_BASE_M = 2.0
+"""A received path's curvature is measured on points at least this far either side of
+each point [m]. Its points are quantised to 1 cm on the wire: over 0.1 m that alone
+fakes a 1 m radius, over 2 m a radius of about 280 m at worst (a cap of 24 m/s at
+2 m/s²). Three points of a circle give its radius exactly, however far apart."""
+
+
+def path_curvature(xy: FloatArray, s: FloatArray) -> FloatArray:
+    """Curvature [1/m] at each point (M, 2) of a path with arc lengths ``s`` (M,) [m].
+
+    At each point, the circle through it and the nearest points at least
+    :data:`CURVE_BASE_M` before and after it (0 where there are none); then the
+    largest of these within ``2 CURVE_BASE_M`` of the point, so that a point where a
+    curve begins or ends (its circle half on the straight) takes the curve's own
+    curvature. Not the vehicle's ``curve_speed_cap``: that one reads a route's exact
+    polyline, this one noisy samples of it.
+    """
+    n = xy.shape[0]
+    kappa = np.zeros(n, dtype=np.float64)
+    if n < 3:
+        return kappa
+    before = np.searchsorted(s, s - CURVE_BASE_M, side="right") - 1
+    after = np.searchsorted(s, s + CURVE_BASE_M, side="left")
+    ok = np.flatnonzero((before >= 0) & (after < n))
+    if ok.size:
+        p, a, b = xy[ok], xy[before[ok]], xy[after[ok]]
+        u, w = p - a, b - a
+        cross2 = np.abs(u[:, 0] * w[:, 1] - u[:, 1] * w[:, 0])  # twice the triangle's area
+        sides = np.hypot(u[:, 0], u[:, 1]) * np.hypot(*(b - p).T) * np.hypot(w[:, 0], w[:, 1])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            kappa[ok] = np.where(sides > 0.0, 2.0 * cross2 / sides, 0.0)
+    near = np.abs(s[:, None] - s[None, :]) <= 2.0 * CURVE_BASE_M
+    spread: FloatArray = np.where(near, kappa[None, :], 0.0).max(axis=1)
+    return spread
+
+
+def curve_caps(xy: FloatArray, s: FloatArray, lat_accel: float, v_max: float) -> FloatArray:
+    """Speed cap [m/s] at each point (M, 2) of a path, arc lengths ``s`` (M,) [m]:
+    ``min(v_max, sqrt(lat_accel * r))`` with the path's own radius ``r``
+    (:func:`path_curvature`)."""
+    kappa = path_curvature(xy, s)
+    with np.errstate(divide="ignore"):
+        caps: FloatArray = np.minimum(v_max, np.sqrt(lat_accel / kappa))
+    return caps
+
+
 def as_path(points: npt.ArrayLike) -> FloatArray:
     """Points as a float (N, 3) array; raises ValueError on a wrong shape."""
     arr = np.asarray(points, dtype=np.float64)

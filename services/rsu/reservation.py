@@ -1,18 +1,39 @@
 """The reservation table: every car's latest future path, indexed in space and time.
 
-Two paths conflict (paper §IV-C) when a point of each lies within ``d_margin``
-[m] of the other (Euclidean, car centres, ``<=``) and their pass times differ by
-less than ``headway`` [s] (``<``), counting only points with
+Two paths conflict (paper §IV-C) when a point of each lies within the pair's
+margin [m] of the other (Euclidean, car centres, ``<=``) and their pass times
+differ by less than ``headway`` [s] (``<``), counting only points with
 ``now <= t <= now + horizon``.
+
+Pair margin (ours; the paper's cars were all alike): the paper's ``d_margin``
+(2.8 m) is meant for two standard 4.5 m x 1.8 m cars. A larger body reaches
+further from its centre, so each car adds its *growth*, how much further its
+body can reach from its centre than a standard car's can: half its diagonal
+minus the standard car's (a circle bound, direction-free)::
+
+    margin = d_margin + g(L1, W1) + g(L2, W2)
+    g(L, W) = max(0, hypot(L', W') / 2 - hypot(4.5, 1.8) / 2),
+    L' = min(L, MAX_BODY_LENGTH_M), W' = min(W, MAX_BODY_WIDTH_M)
+
+(0 for a standard or smaller car, 3.71 m for a 12 m x 2.5 m bus, so a bus and
+a car conflict within 6.51 m of centre distance). The growth is capped at the
+largest plausible road vehicle (25 m x 3 m, 10.17 m): the wire allows 50 m x
+10 m, and a hostile "car" declaring that must not make every neighbourhood
+search huge; the RSU core counts such paths (``oversize``) and plans them with
+the cap.
 
 Index: a uniform grid over (x, y, t) with cells of ``d_margin`` x ``d_margin``
 x ``headway`` (a hair larger, so that float rounding can never push a
 conflicting pair two cells apart). Each cell key maps to the set of cars with
-a point in it; a query looks up the 3x3x3 neighbourhood of each of its own
-cells, which is guaranteed to contain every point it can conflict with, then
-checks only those cars exactly, all pairs vectorised. Cell coordinates wrap
-modulo 2**21 per axis when packed into one integer key; a wrap only adds
-candidates (the exact check removes them), it never loses a conflict.
+a point in it, a car with a growth ``g`` being entered in every cell within
+``ceil(g / cell)`` cells in x and y of its points too; a query looks up the
+neighbourhood of each of its own cells that its own reach (``d_margin`` plus
+its growth plus any margin) spans, 3x3x3 for a standard car, which is then
+guaranteed to contain every point it can conflict with, and checks only those
+cars exactly, all pairs vectorised. A standard car's query stays 3x3x3 while a
+bus is in the table. Cell coordinates wrap modulo 2**21 per axis when packed
+into one integer key; a wrap only adds candidates (the exact check removes
+them), it never loses a conflict.
 
 ``naive_conflicts`` is the brute-force all-pairs reference (tests, benchmark).
 """
@@ -27,6 +48,7 @@ import numpy as np
 import numpy.typing as npt
 
 from protocol.codec import MAX_COORD_M, MAX_TIME_US
+from services.model.scenario import DEFAULT_LENGTH_M, DEFAULT_WIDTH_M
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -34,6 +56,16 @@ IntArray = npt.NDArray[np.int64]
 _AXIS_BITS = 21
 _MASK = (1 << _AXIS_BITS) - 1
 _CELL_SLACK = 1.0 + 1e-9
+_REACH_SLACK = 1.0 + 1e-6  # on growths and margins: far more than float rounding
+
+STANDARD_SHAPE = (DEFAULT_LENGTH_M, DEFAULT_WIDTH_M)
+"""The car ``d_margin`` is meant for: length, width [m]."""
+MAX_BODY_LENGTH_M = 25.0
+"""Longest body the margin grows for [m]: the longest road vehicles allowed in Europe
+(25.25 m combinations); a longer declared length is planned as this one."""
+MAX_BODY_WIDTH_M = 3.0
+"""Widest body the margin grows for [m] (legal road vehicles are at most 2.6 m)."""
+_STANDARD_HALF_DIAGONAL = 0.5 * math.hypot(*STANDARD_SHAPE)
 _MAX_T_S = MAX_TIME_US / 1e6  # largest |t| [s]: the wire's bound on generation times
 _OUT_OF_BOUNDS = (
     f"path points must be finite, |x| and |y| <= {MAX_COORD_M:g} m, |t| <= {_MAX_T_S:g} s"
@@ -62,6 +94,27 @@ def _offsets(rxy: int, rt: int) -> IntArray:
 
 
 _OFFSETS = {(1, 1): _offsets(1, 1)}
+
+
+def body_growth(length: float, width: float) -> float:
+    """How much further [m] a ``length`` x ``width`` [m] body can reach from its centre than
+    a standard car's (:data:`STANDARD_SHAPE`): half-diagonal difference, >= 0, the body
+    capped at :data:`MAX_BODY_LENGTH_M` x :data:`MAX_BODY_WIDTH_M`."""
+    if not (math.isfinite(length) and math.isfinite(width) and length >= 0 and width >= 0):
+        raise ValueError(f"vehicle shape must be finite and >= 0, got {length!r} x {width!r}")
+    half = 0.5 * math.hypot(min(length, MAX_BODY_LENGTH_M), min(width, MAX_BODY_WIDTH_M))
+    return max(0.0, half - _STANDARD_HALF_DIAGONAL)
+
+
+def oversize(length: float, width: float) -> bool:
+    """The body is beyond what the margin grows for (:func:`body_growth` caps it)."""
+    return length > MAX_BODY_LENGTH_M or width > MAX_BODY_WIDTH_M
+
+
+def _plane_offsets(r: int) -> IntArray:
+    """(dx, dy) cell offsets of the (2 r + 1)^2 square."""
+    span = range(-r, r + 1)
+    return np.array([(dx, dy) for dx in span for dy in span], dtype=np.int64)
 
 
 @dataclass(frozen=True, slots=True)
@@ -94,6 +147,7 @@ class Entry:
     updated: float
     keys: IntArray
     by_time: FloatArray  # the points sorted by pass time (stable), for the exact check
+    growth: float = 0.0  # body_growth(length, width) [m]
 
     def expires_at(self, expiry_s: float) -> float:
         return self.updated + expiry_s
@@ -219,10 +273,18 @@ class ReservationTable:
         if not math.isfinite(now):
             raise ValueError("now must be finite")
         length, width = float(shape[0]), float(shape[1])
-        if not (math.isfinite(length) and math.isfinite(width)):
-            raise ValueError("vehicle shape must be finite")
+        growth = body_growth(length, width)
         pts.flags.writeable = False
-        keys: IntArray = np.unique(_pack(*self._cells(pts)))
+        ix, iy, it = self._cells(pts)
+        k = self._cells_for(growth)
+        if k and pts.shape[0]:
+            # entered in every cell its grown body reaches too (see the module docstring)
+            plane = _plane_offsets(k)
+            keys: IntArray = np.unique(
+                _pack(ix[:, None] + plane[None, :, 0], iy[:, None] + plane[None, :, 1], it[:, None])
+            )
+        else:
+            keys = np.unique(_pack(ix, iy, it))
         self._unindex(vehicle)
         index = self._index
         for key in keys.tolist():
@@ -232,7 +294,9 @@ class ReservationTable:
             else:
                 cell.add(vehicle)
         by_time = pts[np.argsort(pts[:, 2], kind="stable")] if pts.shape[0] else pts
-        self._entries[vehicle] = Entry(vehicle, pts, length, width, float(now), keys, by_time)
+        self._entries[vehicle] = Entry(
+            vehicle, pts, length, width, float(now), keys, by_time, growth
+        )
 
     def touch(self, vehicle: str, now: float) -> bool:
         """Refresh a car's entry without changing its path (the car is alive)."""
@@ -271,11 +335,23 @@ class ReservationTable:
 
     # -- queries --------------------------------------------------------------------------
 
+    def _cells_for(self, reach: float) -> int:
+        """Cells a ``reach`` [m] >= 0 beyond a cell's own spans (0 for none), with slack."""
+        return math.ceil(reach * _REACH_SLACK / self._cell_xy) if reach > 0.0 else 0
+
     def _limits(self, margin_m: float, margin_s: float) -> tuple[float, float]:
+        """The querying car's own reach [m] (``d_margin`` + its growth + ``margin_m``;
+        each other car adds its growth) and the headway [s]."""
         if not (0.0 <= margin_m < math.inf and 0.0 <= margin_s < math.inf):
             raise ValueError("margins must be finite and >= 0")
-        d = self.d_margin_m + margin_m
-        return d * d, self.headway_s + margin_s
+        return self.d_margin_m + margin_m, self.headway_s + margin_s
+
+    def growth_of(self, vehicle: str, shape: tuple[float, float] | None) -> float:
+        """The querying car's growth [m]: of ``shape``, else of its own entry's shape, else 0."""
+        if shape is not None:
+            return body_growth(float(shape[0]), float(shape[1]))
+        entry = self._entries.get(vehicle)
+        return 0.0 if entry is None else entry.growth
 
     def _window(self, points: FloatArray, now: float, horizon_s: float) -> FloatArray:
         t = points[:, 2]
@@ -302,16 +378,21 @@ class ReservationTable:
         return out
 
     def candidates(
-        self, points: FloatArray, margin_m: float = 0.0, margin_s: float = 0.0
+        self,
+        points: FloatArray,
+        margin_m: float = 0.0,
+        margin_s: float = 0.0,
+        growth_m: float = 0.0,
     ) -> set[str]:
         """Cars with a point in the cell neighbourhood of any of ``points``.
 
-        The neighbourhood is 3x3x3 cells without margins; wider when the
-        margins make the reach exceed one cell.
+        The neighbourhood is 3x3x3 cells without margins or growth (``growth_m``,
+        the querying car's :func:`body_growth`); wider when they make the reach
+        exceed one cell.
         """
         if points.shape[0] == 0 or not self._index:
             return set()
-        rxy = max(1, math.ceil((self.d_margin_m + margin_m) / self._cell_xy))
+        rxy = max(1, 1 + self._cells_for(margin_m + growth_m))
         rt = max(1, math.ceil((self.headway_s + margin_s) / self._cell_t))
         offsets = _OFFSETS.get((rxy, rt))
         if offsets is None:
@@ -341,13 +422,17 @@ class ReservationTable:
         exclude: Collection[str] = (),
         margin_m: float = 0.0,
         margin_s: float = 0.0,
+        shape: tuple[float, float] | None = None,
     ) -> list[Conflict]:
         """Conflicts of ``vehicle``'s ``points`` with every other live entry, sorted by time.
 
         ``margin_m`` / ``margin_s`` (>= 0) widen ``d_margin`` / ``headway`` for this
-        query only: a conflict "by a margin" (used for hysteresis).
+        query only: a conflict "by a margin" (used for hysteresis). ``shape`` is the
+        querying car's length, width [m] (default: its entry's, else a standard car's).
         """
-        found = list(self._scan(vehicle, points, now, horizon_s, exclude, margin_m, margin_s, ()))
+        found = list(
+            self._scan(vehicle, points, now, horizon_s, exclude, margin_m, margin_s, (), shape)
+        )
         found.sort(key=lambda c: (c.time, c.vehicle))
         return found
 
@@ -359,9 +444,11 @@ class ReservationTable:
         horizon_s: float,
         exclude: Collection[str] = (),
         prefer: Sequence[str] = (),
+        shape: tuple[float, float] | None = None,
     ) -> Conflict | None:
         """Any one conflict (checking the cars in ``prefer`` first), or None: cheaper than all."""
-        return next(self._scan(vehicle, points, now, horizon_s, exclude, 0.0, 0.0, prefer), None)
+        scan = self._scan(vehicle, points, now, horizon_s, exclude, 0.0, 0.0, prefer, shape)
+        return next(scan, None)
 
     def _scan(
         self,
@@ -373,18 +460,22 @@ class ReservationTable:
         margin_m: float,
         margin_s: float,
         prefer: Sequence[str],
+        shape: tuple[float, float] | None,
     ) -> Iterator[Conflict]:
         q = self._window(_checked(points), now, horizon_s)
         if q.shape[0] == 0:
             return
-        d2, headway = self._limits(margin_m, margin_s)
-        others = self._others(vehicle, now, exclude, self.candidates(q, margin_m, margin_s))
+        growth = self.growth_of(vehicle, shape)
+        reach, headway = self._limits(margin_m + growth, margin_s)
+        found = self.candidates(q, margin_m, margin_s, growth)
+        others = self._others(vehicle, now, exclude, found)
         if prefer:
             rank = {v: i for i, v in enumerate(prefer)}
             others.sort(key=lambda e: rank.get(e.vehicle, len(rank)))
         for entry in others:
             o = self._window_sorted(entry, now, horizon_s)
-            conflict = _pair_conflict(entry.vehicle, q, o, d2, headway)
+            d = reach + entry.growth
+            conflict = _pair_conflict(entry.vehicle, q, o, d * d, headway)
             if conflict is not None:
                 yield conflict
 
@@ -397,14 +488,16 @@ class ReservationTable:
         exclude: Collection[str] = (),
         margin_m: float = 0.0,
         margin_s: float = 0.0,
+        shape: tuple[float, float] | None = None,
     ) -> list[Conflict]:
         """Same answer as ``conflicts`` by brute force: every point pair of every entry."""
         q = self._window(_checked(points), now, horizon_s)
-        d2, headway = self._limits(margin_m, margin_s)
+        reach, headway = self._limits(margin_m + self.growth_of(vehicle, shape), margin_s)
         found = []
         for entry in self._others(vehicle, now, exclude, list(self._entries)):
             o = self._window_sorted(entry, now, horizon_s)
-            conflict = _pair_conflict(entry.vehicle, q, o, d2, headway)
+            d = reach + entry.growth
+            conflict = _pair_conflict(entry.vehicle, q, o, d * d, headway)
             if conflict is not None:
                 found.append(conflict)
         found.sort(key=lambda c: (c.time, c.vehicle))

@@ -39,6 +39,16 @@ Two policies (``Policy``):
 The positions are the autonomous path's distinct positions: repeated points
 (a held stop at its end) are merged, and the autonomous path is taken to stop
 at its end in that case.
+
+Each car is planned with its own limits, the ``VehicleLimits`` its path declares
+(``protocol/SPEC.md`` 2.3): its ``v_max`` replaces ``V_max`` above, its ``accel``
+and ``decel`` the accelerations, and its ``lat_accel`` caps every speed in a curve
+at ``sqrt(lat_accel * r)``, ``r`` the radius of the path's own points
+(:func:`services.rsu.paths.curve_caps`), braking at ``decel`` ahead of the curve.
+A car that declares no limits is planned with the RSU's configuration (the
+scenario's ``[params]``). The car's length and width are the ones in its path (the
+slot search checks conflicts with the pair margin they give, see
+``services.rsu.reservation``).
 """
 
 from __future__ import annotations
@@ -51,7 +61,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import numpy.typing as npt
 
-from protocol.messages import Mode, VehiclePath
+from protocol.messages import Mode, VehicleLimits, VehiclePath
 from services.model.types import Policy
 from services.rsu import paths
 from services.rsu.reservation import ReservationTable
@@ -85,7 +95,8 @@ class SpeedPlan:
 
 @dataclass(frozen=True, slots=True, eq=False)
 class _Track:
-    """An autonomous path reduced to distinct positions, with arc lengths and own speeds."""
+    """An autonomous path reduced to distinct positions, with arc lengths and own speeds,
+    and the car's limits (its own, or the RSU's defaults)."""
 
     xy: FloatArray  # (M, 2)
     s: FloatArray  # (M,) arc length [m]
@@ -94,9 +105,26 @@ class _Track:
     t0: float
     v0: float
     t_end: float  # latest time the plan must cover [s]
+    limits: VehicleLimits
+    length: float  # [m]
+    width: float  # [m]
+    v_cap: FloatArray  # (M,) v_max, lowered in curves to sqrt(lat_accel * r) [m/s]
+
+    @property
+    def v_max(self) -> float:
+        return self.limits.v_max
+
+    @property
+    def accel(self) -> float:
+        return self.limits.accel
+
+    @property
+    def decel(self) -> float:
+        return self.limits.decel
 
 
-def _track(path: VehiclePath, v_max: float, now: float, t_free: float) -> _Track:
+def _track(path: VehiclePath, limits: VehicleLimits, now: float, t_free: float) -> _Track:
+    v_max = limits.v_max
     pts = np.asarray(path.points, dtype=np.float64)
     if pts.shape[0] == 0:
         pts = np.array([[path.x, path.y, path.header.time_s]], dtype=np.float64)
@@ -106,20 +134,36 @@ def _track(path: VehiclePath, v_max: float, now: float, t_free: float) -> _Track
     ends_stopped = pts.shape[0] == 1 or not bool(keep[-1])
     kept = pts[keep]
     d = paths.segment_lengths(kept)
-    v_ap = np.minimum(np.maximum(paths.segment_speeds(kept, float(path.speed)), 0.0), v_max)
+    s = np.cumsum(d)
+    xy = kept[:, :2].copy()
+    v_cap = paths.curve_caps(xy, s, limits.lat_accel, v_max)
+    v_ap = np.minimum(np.maximum(paths.segment_speeds(kept, float(path.speed)), 0.0), v_cap)
     if ends_stopped:
         v_ap[-1] = 0.0
     t0 = float(pts[0, 2])
     t_end = max(float(pts[-1, 2]), now + t_free, t0 + t_free)
     return _Track(
-        xy=kept[:, :2].copy(),
-        s=np.cumsum(d),
+        xy=xy,
+        s=s,
         d=d,
         v_ap=v_ap,
         t0=t0,
         v0=max(0.0, float(path.speed)),
         t_end=t_end,
+        limits=limits,
+        length=float(path.length),
+        width=float(path.width),
+        v_cap=v_cap,
     )
+
+
+def _accel_limited(w: FloatArray, s: FloatArray, accel: float) -> FloatArray:
+    """Squared speeds ``w`` (along the last axis, at arc lengths ``s``) lowered where the
+    car cannot reach them accelerating at ``accel`` from the points before:
+    ``min over j <= i of w[j] + 2 accel (s_i - s_j)``, vectorised."""
+    ramp = 2.0 * accel * s
+    out: FloatArray = np.minimum.accumulate(w - ramp, axis=-1) + ramp
+    return out
 
 
 def _segment_times(d: FloatArray, v: FloatArray) -> FloatArray:
@@ -210,6 +254,10 @@ class VelocityManager:
         self.config = config
         self.policy = Policy(config.policy)
         self.zone = paths.ConvexZone.of(config.conflict_zone)
+        # a car that declares no limits is planned with the scenario's [params]
+        self.default_limits = VehicleLimits(
+            config.v_max_mps, config.accel_mps2, config.decel_comfort_mps2, config.lat_accel_mps2
+        )
 
     # -- public ---------------------------------------------------------------------------
 
@@ -222,23 +270,30 @@ class VelocityManager:
         table: ReservationTable,
         exclude: Collection[str] = (),
     ) -> SpeedPlan:
-        """Coordinated path body for ``vehicle`` in ``mode`` from its autonomous ``path``."""
+        """Coordinated path body for ``vehicle`` in ``mode`` from its autonomous ``path``,
+        with the limits the path declares (else the configuration's)."""
         cfg = self.config
-        track = _track(path, cfg.v_max_mps, now, cfg.t_free_s)
+        track = _track(path, self.limits_of(path), now, cfg.t_free_s)
         if mode == Mode.C_FAST:
-            return self._fast(track, path.length)
+            return self._fast(track)
         if mode == Mode.C_SLOW:
             if self.policy == Policy.SLOT:
-                return self._slot(vehicle, track, path.length, now, table, exclude)
+                return self._slot(vehicle, track, now, table, exclude)
             return self._stop(track)
         raise ValueError(f"no coordinated path for mode {mode!r}")
+
+    def limits_of(self, path: VehiclePath) -> VehicleLimits:
+        """The limits to plan ``path``'s car with: its declared ones, else the RSU's."""
+        if path.limits is not None:
+            return path.limits
+        return self.default_limits
 
     # -- paper ----------------------------------------------------------------------------
 
     def _stop(self, tr: _Track, kind: str = "stop") -> SpeedPlan:
         """Brake comfortably from the current speed to the exact stop point, then hold."""
         cfg = self.config
-        b = cfg.decel_comfort_mps2
+        b = tr.decel
         v0 = tr.v0
         s_stop = v0 * v0 / (2.0 * b)
         v = np.sqrt(np.maximum(v0 * v0 - 2.0 * b * tr.s, 0.0))
@@ -255,22 +310,22 @@ class VelocityManager:
         pts = np.vstack([pts, hold])
         return SpeedPlan(pts, np.zeros(pts.shape[0]), kind)
 
-    def _fast_caps(self, tr: _Track, length: float) -> tuple[FloatArray, int | None]:
-        """``V_max`` up to the zone exit plus one car length, then the path's own speeds."""
-        cfg = self.config
-        cap = np.full(tr.s.shape[0], cfg.v_max_mps)
+    def _fast_caps(self, tr: _Track) -> tuple[FloatArray, int | None]:
+        """The car's ``v_max`` (lower in curves) up to the zone exit plus one car length,
+        then the path's own speeds."""
+        cap = tr.v_cap.copy()
         span = paths.zone_span(tr.xy, self.zone)
         if span is not None and span[1] < tr.s.shape[0]:
-            after = tr.s > tr.s[span[1]] + length
+            after = tr.s > tr.s[span[1]] + tr.length
             cap[after] = tr.v_ap[after]
         if tr.v_ap[-1] <= 0.0:
             cap[-1] = 0.0
         return cap, (None if span is None else span[0])
 
-    def _fast(self, tr: _Track, length: float) -> SpeedPlan:
+    def _fast(self, tr: _Track) -> SpeedPlan:
         cfg = self.config
-        cap, entry = self._fast_caps(tr, length)
-        v = _kinematic(tr.d, cap, tr.v0, cfg.accel_mps2, cfg.decel_comfort_mps2)
+        cap, entry = self._fast_caps(tr)
+        v = _kinematic(tr.d, cap, tr.v0, tr.accel, tr.decel)
         pts, speeds = _finish(tr.xy, tr.d, v, cap, tr.t0, tr.t_end, cfg.hold_step_s)
         reached = entry is not None and entry < pts.shape[0]
         entry_time = float(pts[entry, 2]) if reached and entry is not None else math.inf
@@ -282,17 +337,16 @@ class VelocityManager:
         self,
         vehicle: str,
         tr: _Track,
-        length: float,
         now: float,
         table: ReservationTable,
         exclude: Collection[str],
     ) -> SpeedPlan:
         cfg = self.config
-        cap, entry = self._fast_caps(tr, length)
+        cap, entry = self._fast_caps(tr)
         if entry is None or entry == 0:
             return self._stop(tr, "slot_fallback")
-        env_after = _envelope(tr.d, cap, cfg.decel_comfort_mps2)
-        fastest = self._cruise(tr, entry, env_after, cfg.v_max_mps)
+        env = _envelope(tr.d, cap, tr.decel)
+        fastest = self._cruise(tr, entry, env, tr.v_max)
         t_fast = tr.t0 + float(np.sum(_segment_times(tr.d[: entry + 1], fastest[: entry + 1])))
         step = cfg.slot_step_s
         coarse = max(1, round(_COARSE_STEP_S / step))  # fine steps per coarse step
@@ -303,11 +357,13 @@ class VelocityManager:
         def attempt(i: int) -> SpeedPlan | None:
             """The plan entering ``i`` steps late if it is conflict-free, else None."""
             nonlocal impossible
-            plan = self._meet(tr, entry, env_after, cap, length, t_fast + i * step)
+            plan = self._meet(tr, entry, env, cap, t_fast + i * step)
             if plan is None:
                 impossible = True  # it can no longer wait that long: nor any longer
                 return None
-            hit = table.first_conflict(vehicle, plan.points, now, cfg.t_free_s, exclude, culprit)
+            hit = table.first_conflict(
+                vehicle, plan.points, now, cfg.t_free_s, exclude, culprit, (tr.length, tr.width)
+            )
             if hit is None:
                 return plan
             culprit[:] = [hit.vehicle]
@@ -330,30 +386,31 @@ class VelocityManager:
             break
         return self._stop(tr, "slot_fallback")
 
-    def _cruise(self, tr: _Track, entry: int, env_after: FloatArray, v_c: float) -> FloatArray:
-        """Speeds: reach ``v_c`` (braking or accelerating), hold it to the zone entry, then go."""
-        cfg = self.config
+    def _cruise(self, tr: _Track, entry: int, env: FloatArray, v_c: float) -> FloatArray:
+        """Speeds: reach ``v_c`` (braking or accelerating), hold it to the zone entry, then go;
+        never above the squared-speed envelope ``env`` (curves, the caps after the zone)."""
         s = tr.s
         v0 = tr.v0
         if v_c <= v0:
-            w = np.maximum(np.maximum(v0 * v0 - 2.0 * cfg.decel_comfort_mps2 * s, 0.0), v_c * v_c)
+            w = np.maximum(np.maximum(v0 * v0 - 2.0 * tr.decel * s, 0.0), v_c * v_c)
         else:
-            w = np.minimum(v0 * v0 + 2.0 * cfg.accel_mps2 * s, v_c * v_c)
-        we = float(w[entry])
-        after = np.minimum(we + 2.0 * cfg.accel_mps2 * (s - s[entry]), np.maximum(env_after, 0.0))
-        w = np.where(np.arange(s.shape[0]) <= entry, w, after)
+            w = np.minimum(v0 * v0 + 2.0 * tr.accel * s, v_c * v_c)
+        w = np.where(np.arange(s.shape[0]) <= entry, np.minimum(w, env), env)
+        w = _accel_limited(w, s, tr.accel)
         return np.sqrt(np.maximum(w, 0.0))
 
-    def _entry_times(self, tr: _Track, entry: int, v_cs: FloatArray) -> FloatArray:
-        """Time to the zone entry for each cruise speed in ``v_cs`` (vectorised)."""
-        cfg = self.config
-        s = tr.s[: entry + 1][None, :]
+    def _entry_times(self, tr: _Track, entry: int, env: FloatArray, v_cs: FloatArray) -> FloatArray:
+        """Time to the zone entry for each cruise speed in ``v_cs`` (vectorised; the
+        profiles of :meth:`_cruise` up to the entry)."""
+        s1 = tr.s[: entry + 1]
+        s = s1[None, :]
         d = tr.d[: entry + 1][None, :]
         v0 = tr.v0
         vc = v_cs[:, None]
-        dec = np.maximum(np.maximum(v0 * v0 - 2.0 * cfg.decel_comfort_mps2 * s, 0.0), vc * vc)
-        acc = np.minimum(v0 * v0 + 2.0 * cfg.accel_mps2 * s, vc * vc)
-        v = np.sqrt(np.where(vc <= v0, dec, acc))
+        dec = np.maximum(np.maximum(v0 * v0 - 2.0 * tr.decel * s, 0.0), vc * vc)
+        acc = np.minimum(v0 * v0 + 2.0 * tr.accel * s, vc * vc)
+        w = np.minimum(np.where(vc <= v0, dec, acc), env[None, : entry + 1])
+        v = np.sqrt(np.maximum(_accel_limited(w, s1, tr.accel), 0.0))
         mean = 0.5 * (v[:, :-1] + v[:, 1:])
         with np.errstate(divide="ignore", invalid="ignore"):
             dt = np.where(d[:, 1:] <= 0.0, 0.0, d[:, 1:] / mean)
@@ -364,36 +421,38 @@ class VelocityManager:
         self,
         tr: _Track,
         entry: int,
-        env_after: FloatArray,
+        env: FloatArray,
         cap: FloatArray,
-        length: float,
         target: float,
     ) -> SpeedPlan | None:
         """Fastest profile entering the zone no earlier than ``target``; None if impossible."""
         cfg = self.config
         need = target - tr.t0
-        lo, hi = cfg.slot_min_speed_mps, cfg.v_max_mps
-        t_lo, t_hi = self._entry_times(tr, entry, np.array([lo, hi]))
+        hi = tr.v_max
+        lo = min(cfg.slot_min_speed_mps, hi)  # a car slower than that still has a slot
+        t_lo, t_hi = self._entry_times(tr, entry, env, np.array([lo, hi]))
         if t_hi >= need - 1e-9:
-            v = self._cruise(tr, entry, env_after, hi)
+            v = self._cruise(tr, entry, env, hi)
             return self._plan_from(tr, v, cap, entry, tr.t0, "slot")
         if t_lo >= need:
             for _ in range(_VC_ROUNDS):
                 grid = np.linspace(lo, hi, _VC_GRID)
-                times = self._entry_times(tr, entry, grid)
+                times = self._entry_times(tr, entry, env, grid)
                 ok = np.flatnonzero(times >= need)  # times decrease with the speed
                 best = int(ok[-1])
                 lo = float(grid[best])
                 hi = float(grid[min(best + 1, grid.shape[0] - 1)])
-            v = self._cruise(tr, entry, env_after, lo)
+            v = self._cruise(tr, entry, env, lo)
             return self._plan_from(tr, v, cap, entry, tr.t0, "slot")
-        return self._stop_and_go(tr, entry, env_after, cap, length, target)
+        return self._stop_and_go(tr, entry, env, cap, target)
 
     def _plan_from(
         self, tr: _Track, v: FloatArray, targets: FloatArray, entry: int, t0: float, kind: str
     ) -> SpeedPlan:
         cfg = self.config
-        speeds = np.where(np.arange(v.shape[0]) <= entry, v, np.minimum(targets, cfg.v_max_mps))
+        # target speeds: the profile to the zone entry, the caps after; never above the
+        # curve caps (the car's current speed may be, at the first point)
+        speeds = np.minimum(np.where(np.arange(v.shape[0]) <= entry, v, targets), tr.v_cap)
         pts, sp = _finish(tr.xy, tr.d, v, speeds, t0, tr.t_end, cfg.hold_step_s)
         entry_time = float(pts[entry, 2]) if entry < pts.shape[0] else math.inf
         return SpeedPlan(pts, sp, kind, entry_time)
@@ -402,9 +461,8 @@ class VelocityManager:
         self,
         tr: _Track,
         entry: int,
-        env_after: FloatArray,
+        env: FloatArray,
         cap: FloatArray,
-        length: float,
         target: float,
     ) -> SpeedPlan | None:
         """Stop ``stop_gap_m`` before the zone, wait, start so as to enter at ``target``.
@@ -412,18 +470,17 @@ class VelocityManager:
         None when the car can no longer stop comfortably before the zone.
         """
         cfg = self.config
-        a, b = cfg.accel_mps2, cfg.decel_comfort_mps2
+        a, b = tr.accel, tr.decel
         s = tr.s
-        k = int(np.searchsorted(s, s[entry] - (length / 2.0 + cfg.stop_gap_m), side="right")) - 1
+        k = int(np.searchsorted(s, s[entry] - (tr.length / 2.0 + cfg.stop_gap_m), side="right")) - 1
         if k < 0 or tr.v0 * tr.v0 > 2.0 * b * s[k] + 1e-6:
             return None
         idx = np.arange(s.shape[0])
-        w_before = np.minimum(
-            np.minimum(tr.v0 * tr.v0 + 2.0 * a * s, 2.0 * b * np.maximum(s[k] - s, 0.0)),
-            cfg.v_max_mps**2,
-        )
-        w_after = np.minimum(2.0 * a * np.maximum(s - s[k], 0.0), env_after)
-        v = np.sqrt(np.maximum(np.where(idx <= k, w_before, w_after), 0.0))
+        w_before = np.minimum(tr.v0 * tr.v0 + 2.0 * a * s, 2.0 * b * np.maximum(s[k] - s, 0.0))
+        w_after = 2.0 * a * np.maximum(s - s[k], 0.0)
+        w = np.minimum(np.where(idx <= k, w_before, w_after), env)
+        w[0] = tr.v0 * tr.v0
+        v = np.sqrt(np.maximum(_accel_limited(w, s, a), 0.0))
         v[0] = tr.v0
         v[k] = 0.0
         dt = _segment_times(tr.d, v)
@@ -434,7 +491,7 @@ class VelocityManager:
         t_go = max(t_stop, target - float(dt[k + 1 : entry + 1].sum()))
         hold = _holds(float(tr.xy[k, 0]), float(tr.xy[k, 1]), t_stop, t_go, cfg.hold_step_s)
         t_after = t_go + np.cumsum(dt[k + 1 :])
-        targets = np.where(idx <= entry, v, np.minimum(cap, cfg.v_max_mps))
+        targets = np.minimum(np.where(idx <= entry, v, cap), tr.v_cap)
         pts = np.vstack(
             [
                 np.column_stack([tr.xy[: k + 1], t_before]),

@@ -50,6 +50,27 @@ TRACE_FIELDS = ("t", "vehicle", "s", "x", "y", "speed", "accel", "reason", "deta
 
 
 @dataclass(frozen=True, slots=True)
+class RsuOutage:
+    """RSU ``rsu`` is down from ``crash_s`` [run s]: it receives, ticks and sends
+    nothing, and its state is lost; at ``restart_s`` (None: never) a fresh ``RsuCore``
+    takes its place, as a restarted daemon would."""
+
+    rsu: str
+    crash_s: float
+    restart_s: float | None = None
+
+    def __post_init__(self) -> None:
+        if not (_is_number(self.crash_s) and math.isfinite(self.crash_s) and self.crash_s >= 0):
+            raise ValueError(f"crash_s must be a finite number >= 0 [s], got {self.crash_s!r}")
+        if self.restart_s is not None and not (
+            _is_number(self.restart_s)
+            and math.isfinite(self.restart_s)
+            and self.restart_s > self.crash_s
+        ):
+            raise ValueError(f"restart_s must be after crash_s, got {self.restart_s!r}")
+
+
+@dataclass(frozen=True, slots=True)
 class SimOptions:
     """One in-process run.
 
@@ -67,9 +88,14 @@ class SimOptions:
     start_times: dict[str, float] | None = None  # overrides the scenario's draw
     trace: bool = False
     max_sim_s: float | None = None
+    rsu_outages: tuple[RsuOutage, ...] = ()
+    """RSU crashes (and restarts with a fresh, empty core) on the run clock."""
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "mode", parse_mode(self.mode))
+        object.__setattr__(self, "rsu_outages", tuple(self.rsu_outages))
+        if not all(isinstance(o, RsuOutage) for o in self.rsu_outages):
+            raise TypeError(f"rsu_outages must be RsuOutage values, got {self.rsu_outages!r}")
         object.__setattr__(self, "policy", parse_policy(self.policy))
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
             raise ValueError(f"seed must be an int >= 0, got {self.seed!r}")
@@ -125,6 +151,9 @@ class Simulation:
             if o.mode is RunMode.RSU
             else {}
         )
+        unknown = sorted({out.rsu for out in o.rsu_outages} - set(self.rsus))
+        if unknown:
+            raise ValueError(f"rsu_outages name no RSU of this {o.mode} run: {unknown}")
         self.channel = MemoryChannel(o.channel, seed=o.seed * 7919 + 17)
         self.metrics = MetricsRecorder(sc)
 
@@ -217,6 +246,8 @@ class Simulation:
                     )
             if self.on_step is not None:
                 self.on_step(now, truths)
+            if o.rsu_outages:
+                self._outages(now, dt)
             if now >= max_t or all_at_goal(sc, truths.values()):
                 break
             for vid, body in self.bodies.items():
@@ -242,6 +273,23 @@ class Simulation:
             provenance=provenance(sc, self.origin, channel, o.mode, o.policy),
             loss=o.channel.loss,
         )
+
+    def _outages(self, now: float, dt: float) -> None:
+        """Crash and restart the RSUs of ``options.rsu_outages`` due in ``[now, now + dt)``
+        (after this step's ticks: the next step sees the change)."""
+
+        def due(t: float) -> bool:  # 1e-9: step * dt is not exact (6.3 is 126 * 0.05 + ulp)
+            return now - 1e-9 <= t < now + dt - 1e-9
+
+        for outage in self.options.rsu_outages:
+            if due(outage.crash_s) and outage.rsu in self.rsus:
+                del self.rsus[outage.rsu]  # in-flight messages to it are dropped
+                log.info("rsu %s crashed at %.2f s", outage.rsu, now)
+            restart = outage.restart_s
+            if restart is not None and due(restart) and outage.rsu not in self.rsus:
+                config = rsu_config(self.scenario, outage.rsu, self.options.policy)
+                self.rsus[outage.rsu] = RsuCore(config)
+                log.info("rsu %s restarted at %.2f s", outage.rsu, now)
 
     def write_trace(self, path: Path) -> None:
         """The per-tick table as CSV (pandas reads it as is)."""

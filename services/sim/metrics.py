@@ -11,7 +11,10 @@ Definitions (times in s on the run's time base, distances in m):
   ``goal - goal_tolerance_m``). Gate times are interpolated linearly in ``s``
   between steps. None if the car never passes both gates.
 - **collisions**: distinct episodes of footprint overlap per pair of cars: a pair
-  overlapping in consecutive steps is one collision.
+  overlapping in consecutive steps is one collision. A step missing one of the two
+  cars (its truth did not reach the monitor) measures nothing for that pair and
+  neither starts nor ends its episode: safety metrics compare cars only at the
+  same step, never against an older one (``services.sim.truth``).
 - **min gap**: smallest distance between two footprints over all pairs and
   recorded steps; ``inf`` with fewer than two cars.
 - **zone visits**: when a car's footprint starts and stops overlapping a conflict
@@ -371,18 +374,19 @@ class MetricsRecorder:
         # the gap is at most the centre distance: a pending pair bounds the minimum too
         bound = min(self._min_gap, self._pending_bound)
         cand = np.flatnonzero((lb <= 0.0) | (lb < bound))
-        if cand.size == 0:
-            # no pair is close: nothing overlaps now, which ends every pending overlap
-            self._flush_pairs()
-            self._overlap = set()
-            return
         ids = [s.id for s in states]
+        present = frozenset(ids)
+        if cand.size == 0:
+            # no pair present is close: that ends their overlaps (not an absent car's)
+            self._flush_pairs()
+            self._overlap = {p for p in self._overlap if not present.issuperset(p)}
+            return
         ci, cj = ii[cand], jj[cand]
         names = [
             (ids[i], ids[j]) if ids[i] <= ids[j] else (ids[j], ids[i])
             for i, j in zip(ci.tolist(), cj.tolist(), strict=True)
         ]
-        self._pending.append(_PendingStep(t, names, poses[ci], poses[cj]))
+        self._pending.append(_PendingStep(t, names, poses[ci], poses[cj], present))
         self._pending_pairs += len(names)
         self._pending_bound = min(self._pending_bound, float(centre[cand].min()))
         if self._pending_pairs >= PAIR_BATCH:
@@ -400,7 +404,8 @@ class MetricsRecorder:
         dists = rect_distances(footprints(*a), footprints(*b)).tolist()
         k = 0
         for st in steps:
-            now_overlap: set[tuple[str, str]] = set()
+            # a pair with a car absent at this step keeps its state (nothing measured)
+            now_overlap = {p for p in self._overlap if not st.present.issuperset(p)}
             for pair in st.pairs:
                 d = dists[k]
                 k += 1
@@ -524,12 +529,13 @@ PAIR_BATCH = 256
 @dataclass(frozen=True, slots=True)
 class _PendingStep:
     """One step's close pairs: (id, id) sorted, and the two cars' poses (P, 5):
-    x [m], y [m], heading [rad], length [m], width [m]."""
+    x [m], y [m], heading [rad], length [m], width [m]; ``present`` every car of the step."""
 
     t: float
     pairs: list[tuple[str, str]]
     a: FloatArray
     b: FloatArray
+    present: frozenset[str]
 
 
 @functools.lru_cache(maxsize=64)

@@ -5,23 +5,35 @@ actions and the next deadline out; no clock reads, no asyncio, no Zenoh. The
 monitor daemon (``services.daemons.monitor``) is a thin shell over it: it turns
 what arrives on the network into calls here, and what comes out into messages.
 
-:class:`TruthSteps` gathers the cars' ground-truth reports of one run into
-physics steps and feeds them to ``MetricsRecorder.record`` in step order,
-exactly as the in-process harness does:
+:class:`TruthSteps` gathers the cars' ground-truth reports of one run into a table
+of physics steps (step -> car -> report) and decides, step by step in order,
+when a step is *closed*:
 
-- a step is recorded as soon as every car of the run reported it;
+- a step is closed as soon as every car of the run reported it;
 - a step still missing a car :data:`TRUTH_WAIT_S` wall seconds after its time,
-  or once another car is :data:`AHEAD_S` run seconds ahead, is recorded with the
-  missing car's latest known truth (counted in ``gaps``); nothing is recorded
-  before any car has reported at all;
-- a report for a step already recorded is ``late`` (counted, dropped); a second
-  report of a car for a pending step replaces the first (``duplicate``);
+  or once another car is :data:`AHEAD_S` run seconds ahead, is closed without
+  that car; nothing is closed before any car has reported at all;
+- a report for a step already closed is ``late``: counted, and still kept in
+  the table (it is that step's truth); a second report of a car for a step
+  replaces the first (``duplicate``);
 - what a peer sent wrong is counted and dropped, never raised: a car that is not
   in the run (``unknown_vehicle``), a step more than :data:`FUTURE_TOLERANCE_S`
   wall seconds ahead of now (``future``: it would otherwise force every step up
-  to it to be recorded at once);
-- the run is over (``done_reason``) when a recorded step reaches ``max_sim_s`` or
-  every car stands at its goal (``services.sim.car.all_at_goal``).
+  to it to be closed at once);
+- the run is over (``done_reason``) when a closed step reaches ``max_sim_s`` or
+  every car stands at its goal (``services.sim.car.all_at_goal``, all cars present).
+
+Safety metrics never mix steps (issue 16): :meth:`TruthSteps.metrics` replays
+the table of the closed steps into a fresh ``MetricsRecorder``, each step with
+exactly the cars whose truth *of that step* is in the table. A car missing at
+a closed step is never filled in from an older step: the step is recorded
+without it (its pairs are not measured there) and counted in
+:meth:`TruthSteps.truth_gaps` (per car), which makes the run ``degraded``. A
+report that arrives late, after its step was closed, is still that step's
+truth: it is in the replay, so an overlap at that step is reported as a
+collision once the report arrives (before the result is built); only a report
+that never arrives is a gap. The replay is what makes the result, its
+``trace`` and ``crosspath results rebuild`` agree exactly.
 
 :class:`MonitorCore` decides the rest of a run's life, in phases:
 
@@ -37,7 +49,8 @@ exactly as the in-process harness does:
    liveliness changes of ``may_crash`` nodes are listed in ``crashes``;
 3. ``ending``: the stop message goes out; waits up to ``stats_wait_s`` for every
    actor's final stats report (not for a lost actor's, nor for a crashed node's
-   that is not back);
+   that is not back); no step is closed any more, late truth of closed steps is
+   still taken;
 4. ``over``: the shell builds the result (when the run started).
 
 Times: ``now`` is wall-clock time in Unix seconds (what the daemons' run clock
@@ -50,14 +63,14 @@ import collections
 import enum
 import logging
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Final, Protocol
 
 from services.model.kinematics import TruthState
 from services.model.scenario import Scenario
 from services.sim.car import all_at_goal
-from services.sim.metrics import MetricsRecorder
+from services.sim.metrics import MetricsRecorder, RunMetrics
 
 __all__ = [
     "AHEAD_S",
@@ -72,6 +85,8 @@ __all__ = [
     "TraceRow",
     "TruthSample",
     "TruthSteps",
+    "replay_metrics",
+    "trace_row",
 ]
 
 log = logging.getLogger("crosspath.monitor")
@@ -121,7 +136,7 @@ def _positive(name: str, value: float, *, zero: bool = False) -> None:
 
 
 class TruthSteps:
-    """One run's truth reports, assembled into recorded steps (see the module docstring).
+    """One run's truth reports, as a table of steps closed in order (module docstring).
 
     ``now`` arguments are run time [s]; ``speed`` (run seconds per wall second)
     converts the wall-second waits.
@@ -149,114 +164,166 @@ class TruthSteps:
         self.trace = trace
         self.wait_s = wait_s
         self.dt = 1.0 / scenario.params.physics_hz
-        self.metrics = MetricsRecorder(scenario)
         self.counters: collections.Counter[str] = collections.Counter()
-        """``gaps``, ``late``, ``duplicate``, ``future``, ``unknown_vehicle``."""
-        self.trace_rows: list[TraceRow] = []
+        """``gaps`` (missing when closed), ``late``, ``duplicate``, ``future``,
+        ``unknown_vehicle``."""
         self.next_step = 0
-        """The first step not recorded yet."""
+        """The first step not closed yet."""
         self.last_t: float | None = None
-        """Run time of the last recorded step [s]."""
+        """Run time of the last closed step [s]."""
         self.done_reason: str | None = None
+        self.closed = False
+        """No step is closed any more (:meth:`close`); late reports are still kept."""
         self._known = frozenset(self.vehicles)
-        self._pending: dict[int, dict[str, TruthSample]] = {}
-        self._latest: dict[str, TruthSample] = {}
+        self._table: dict[int, dict[str, TruthSample]] = {}
+        self._any_report = False
         self._max_step_seen = -1
         self._ahead_steps = max(1, round(AHEAD_S / self.dt))
 
     @property
     def gaps(self) -> int:
-        """Missing reports filled in with the car's latest truth."""
-        return self.counters["gaps"]
+        """Car reports still missing at their step (the sum of :meth:`truth_gaps`)."""
+        return sum(self.truth_gaps().values())
 
     @property
     def late(self) -> int:
-        """Reports for steps already recorded."""
+        """Reports that came after their step was closed (kept: they are its truth)."""
         return self.counters["late"]
 
-    def on_report(self, now: float, report: TruthSample) -> None:
-        """Take one car's report at run time ``now``; records every step it completes."""
+    def on_report(self, now: float, report: TruthSample) -> bool:
+        """Take one car's report at run time ``now``; closes every step it completes.
+        Whether the report was kept (the monitor's step log records exactly those)."""
         vid = report.vehicle
         if vid not in self._known:
             self.counters["unknown_vehicle"] += 1
-            return
+            return False
         step = report.step
-        if (step * self.dt - now) / self.speed > FUTURE_TOLERANCE_S:
+        if step < 0 or (step * self.dt - now) / self.speed > FUTURE_TOLERANCE_S:
             self.counters["future"] += 1
-            return
-        prev = self._latest.get(vid)
-        if prev is None or step > prev.step:
-            self._latest[vid] = report
-        if step < self.next_step:
-            self.counters["late"] += 1
-            return
-        if self.done_reason is not None:
-            return
-        reports = self._pending.setdefault(step, {})
+            return False
+        if step >= self.next_step and (self.closed or self.done_reason is not None):
+            return False  # after the end of the run
+        reports = self._table.setdefault(step, {})
         if vid in reports:
             self.counters["duplicate"] += 1
         reports[vid] = report
+        self._any_report = True
+        if step < self.next_step:
+            self.counters["late"] += 1
+            return True
         self._max_step_seen = max(self._max_step_seen, step)
         self.advance(now)
+        return True
+
+    def close(self, steps: int | None = None) -> None:
+        """The run is over (or failed): close no more steps; late reports of the closed
+        ones are still taken. ``steps``: exactly that many steps count as closed (a
+        rebuild from a step log ends where the monitor ended)."""
+        self.closed = True
+        if steps is not None:
+            if steps < 0:
+                raise ValueError(f"steps must be >= 0, got {steps}")
+            self.next_step = steps
+            self.last_t = (steps - 1) * self.dt if steps > 0 else None
+        for k in [k for k in self._table if k >= self.next_step]:
+            del self._table[k]
 
     def advance(self, now: float) -> None:
-        """Record every step that is complete, or waited for long enough, in order."""
-        while self.done_reason is None:
+        """Close every step that is complete, or waited for long enough, in order."""
+        while self.done_reason is None and not self.closed:
             k = self.next_step
-            reports = self._pending.get(k, {})
+            reports = self._table.get(k, {})
             if len(reports) < len(self.vehicles):
                 overdue = now >= self._overdue_at(k)
                 ahead = self._max_step_seen >= k + self._ahead_steps
-                if not (overdue or ahead) or (not reports and not self._latest):
+                if not (overdue or ahead) or not self._any_report:
                     return
-            self._pending.pop(k, None)
-            self._record(k, reports)
+            self._close_step(k, reports)
             self.next_step = k + 1
 
     def _overdue_at(self, k: int) -> float:
         return k * self.dt + self.wait_s * self.speed
 
     def next_deadline(self) -> float | None:
-        """Run time [s] at which the next step is recorded even if incomplete; None when
+        """Run time [s] at which the next step is closed even if incomplete; None when
         over or when no car has reported yet (a report comes through :meth:`on_report`)."""
-        if self.done_reason is not None or not self._latest:
+        if self.done_reason is not None or self.closed or not self._any_report:
             return None
         return self._overdue_at(self.next_step)
 
-    def _record(self, k: int, reports: Mapping[str, TruthSample]) -> None:
+    def _close_step(self, k: int, reports: Mapping[str, TruthSample]) -> None:
         t = k * self.dt
-        rows: list[TruthSample] = []
-        for vid in self.vehicles:
-            report = reports.get(vid)
-            if report is None:
-                report = self._latest.get(vid)
-                if report is None:
-                    continue
-                self.counters["gaps"] += 1
-            rows.append(report)
-        states = [r.state for r in rows]
-        if self.trace:
-            self.trace_rows.extend(
-                (
-                    round(t, 3),
-                    r.vehicle,
-                    round(r.state.x, 3),
-                    round(r.state.y, 3),
-                    round(r.state.s, 3),
-                    round(r.state.speed, 3),
-                    r.mode,
-                    r.reason,
-                )
-                for r in rows
-            )
-        self.metrics.record(
-            t, states, {r.vehicle: r.mode for r in rows}, {r.vehicle: r.reason for r in rows}
-        )
+        self.counters["gaps"] += len(self.vehicles) - len(reports)
         self.last_t = t
+        states = [r.state for r in reports.values()]
         if t >= self.max_sim_s:
             self.done_reason = f"max_sim_s ({self.max_sim_s:g} s) reached"
         elif len(states) == len(self.vehicles) and all_at_goal(self.scenario, states):
             self.done_reason = "every car stands at its goal"
+
+    # -- what the result is made of ------------------------------------------------
+
+    def steps(self) -> Iterator[tuple[int, list[TruthSample]]]:
+        """Every closed step with the reports of that very step, cars in run order."""
+        for k in range(self.next_step):
+            reports = self._table.get(k, {})
+            yield k, [reports[v] for v in self.vehicles if v in reports]
+
+    def truth_gaps(self) -> dict[str, int]:
+        """Per car, the closed steps its truth is missing from (never filled in)."""
+        gaps = dict.fromkeys(self.vehicles, 0)
+        for _k, rows in self.steps():
+            present = {r.vehicle for r in rows}
+            for vid in self.vehicles:
+                if vid not in present:
+                    gaps[vid] += 1
+        return gaps
+
+    @property
+    def degraded(self) -> bool:
+        """Some car's truth is missing at some closed step."""
+        return any(self.truth_gaps().values())
+
+    def metrics(self) -> RunMetrics:
+        """The run's metrics from same-step truth only (see the module docstring)."""
+        return replay_metrics(self.scenario, self.dt, self.steps())
+
+    @property
+    def trace_rows(self) -> list[TraceRow]:
+        """One row per closed step and car present (:data:`TRACE_FIELDS`)."""
+        return [trace_row(k * self.dt, r) for k, rows in self.steps() for r in rows]
+
+
+def trace_row(t: float, r: TruthSample) -> TraceRow:
+    """One row of the trace: car ``r`` at run time ``t`` [s] (values rounded to mm)."""
+    st = r.state
+    return (
+        round(t, 3),
+        r.vehicle,
+        round(st.x, 3),
+        round(st.y, 3),
+        round(st.s, 3),
+        round(st.speed, 3),
+        r.mode,
+        r.reason,
+    )
+
+
+def replay_metrics(
+    scenario: Scenario, dt: float, steps: Iterable[tuple[int, Sequence[TruthSample]]]
+) -> RunMetrics:
+    """Metrics of ``steps`` (step index, that step's reports) fed in order to a fresh
+    ``MetricsRecorder`` at run time ``step * dt`` [s]; a step without any car is skipped."""
+    recorder = MetricsRecorder(scenario)
+    for k, rows in steps:
+        if rows:
+            recorder.record(
+                k * dt,
+                [r.state for r in rows],
+                {r.vehicle: r.mode for r in rows},
+                {r.vehicle: r.reason for r in rows},
+            )
+    return recorder.result()
 
 
 class Phase(enum.Enum):
@@ -415,10 +482,15 @@ class MonitorCore:
         else:
             self.finals.discard(node)
 
-    def on_truth(self, now: float, report: TruthSample) -> None:
-        """A car's ground truth of this run (taken while the run is running)."""
-        if self._running():
-            self.truth.on_report(self.run_time(now), report)
+    def on_truth(self, now: float, report: TruthSample) -> bool:
+        """A car's ground truth of this run; whether it was kept. While the run is
+        running it may close steps; afterwards only late reports of closed steps are kept
+        (they still count: see the module docstring)."""
+        if self.epoch is None or self.phase not in (Phase.RUNNING, Phase.ENDING):
+            return False
+        if not self._running():
+            self.truth.close()
+        return self.truth.on_report(self.run_time(now), report)
 
     def abort(self, cause: str = "stopped by a signal") -> None:
         """The monitor has to stop (``cause``: a signal, an internal error): the run fails
@@ -491,6 +563,7 @@ class MonitorCore:
             return Actions(start=start)
         self.phase = Phase.ENDING
         self.end_wall = now
+        self.truth.close()
         reason = self.done_reason or self.failure or "stopped"
         return Actions(start=start, stop=reason)
 

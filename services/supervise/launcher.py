@@ -10,7 +10,18 @@ every child: SIGTERM to its process group, SIGKILL after
 run fails with a clear message and the last lines of the failed child's log),
 on ``--timeout`` and when the launcher gets SIGINT (Ctrl-C) or SIGTERM; a second
 signal skips the grace period. On Linux the children also get SIGTERM from the
-kernel if the launcher itself dies (``PR_SET_PDEATHSIG``).
+kernel if the launcher itself dies, even by SIGKILL (``PR_SET_PDEATHSIG``; a child
+whose launcher died before that was set exits at once).
+
+No child outlives the launcher, restarted ones included: every daemon's command
+line carries the run id (Zenoh ``metadata``, ``{"crosspath_run": RUN_ID}``), and
+after stopping its own children the launcher sweeps ``/proc`` for any process
+whose command line still carries it (e.g. an RSU restarted by hand from
+``children.json`` after a crash, which is not the launcher's child): SIGTERM,
+then SIGKILL after :data:`SWEEP_GRACE_S`. ``notes`` says what it swept. An actor
+that exits during the run is reported in the result's ``crashes``
+(``services.model.results.CrashEvent``, ``lost`` at the run time the launcher saw
+it go) when the monitor did not list it itself, and ``notes`` say what followed.
 
 Network: every daemon is a Zenoh peer with multicast scouting off, listening
 on one UDP and one TCP port of 127.0.0.1 (free ports picked at start) and
@@ -51,7 +62,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import FrameType
@@ -68,7 +79,7 @@ from services.edge.args import (
 from services.edge.progress import Ticker
 from services.edge.settings import LogLevel
 from services.model.catalog import resolve_scenario
-from services.model.results import RunResult
+from services.model.results import CrashEvent, RunResult
 from services.model.scenario import Scenario, load_scenario
 from services.model.types import Policy, RunMode, parse_mode, parse_policy
 
@@ -95,6 +106,9 @@ GRACE_S: Final = 5.0
 LEASE_MS: Final = 2000
 """Zenoh link lease of the daemons ``crosspath up`` starts [ms] (Zenoh's default is 10 s): a
 crashed peer's UDP link, and with it its liveliness token, is gone after at most this."""
+
+SWEEP_GRACE_S: Final = 2.0
+"""Seconds a swept leftover process has to exit after SIGTERM before it is killed."""
 
 CRASH_WAIT_S: Final = 4.0
 """After an actor exits during the run, how long the monitor gets to notice and fail."""
@@ -243,13 +257,58 @@ def loopback_endpoints(nodes: Sequence[str]) -> dict[str, Endpoints]:
     }
 
 
-def _die_with_parent() -> None:
-    """In the child before exec (Linux): SIGTERM when the launcher dies, even by SIGKILL."""
-    import ctypes
+def _die_with_parent(parent: int) -> Callable[[], None]:
+    """For the child before exec (Linux): SIGTERM when the launcher (pid ``parent``) dies,
+    even by SIGKILL; exit at once if it already died before the request was made."""
 
-    pr_set_pdeathsig = 1
-    with contextlib.suppress(OSError, AttributeError):
-        ctypes.CDLL(None, use_errno=True).prctl(pr_set_pdeathsig, int(signal.SIGTERM))
+    def preexec() -> None:
+        import ctypes
+
+        pr_set_pdeathsig = 1
+        with contextlib.suppress(OSError, AttributeError):
+            ctypes.CDLL(None, use_errno=True).prctl(pr_set_pdeathsig, int(signal.SIGTERM))
+        if os.getppid() != parent:
+            os._exit(1)
+
+    return preexec
+
+
+def processes_carrying(marker: str) -> list[int]:
+    """Pids (ours excluded) whose command line contains ``marker``, from ``/proc`` (Linux;
+    empty elsewhere). A process that ends while being read is skipped."""
+    if not marker:
+        raise ValueError("an empty marker would match every process")
+    needle = marker.encode()
+    own = os.getpid()
+    found: list[int] = []
+    with contextlib.suppress(OSError):
+        entries = os.listdir("/proc")
+        for entry in entries:
+            if not entry.isdigit() or int(entry) == own:
+                continue
+            try:
+                cmdline = Path("/proc", entry, "cmdline").read_bytes()
+            except OSError:
+                continue
+            if needle in cmdline:
+                found.append(int(entry))
+    return sorted(found)
+
+
+def sweep(marker: str, grace_s: float = SWEEP_GRACE_S) -> list[int]:
+    """SIGTERM every process carrying ``marker`` (:func:`processes_carrying`), SIGKILL those
+    left after ``grace_s``; the pids found."""
+    found = processes_carrying(marker)
+    for pid in found:
+        with contextlib.suppress(ProcessLookupError, PermissionError):
+            os.kill(pid, signal.SIGTERM)
+    deadline = time.monotonic() + grace_s
+    while time.monotonic() < deadline and set(processes_carrying(marker)) & set(found):
+        time.sleep(0.05)
+    for pid in set(processes_carrying(marker)) & set(found):
+        with contextlib.suppress(ProcessLookupError, PermissionError):
+            os.kill(pid, signal.SIGKILL)
+    return found
 
 
 def daemon_env(base: Mapping[str, str] | None = None) -> dict[str, str]:
@@ -302,6 +361,10 @@ class Launcher:
     interrupted: int = 0
     signals: int = 0
     notes: list[str] = field(default_factory=list)
+    run_id: str | None = None
+    """Carried by every child's command line: the final sweep finds leftovers by it."""
+    exits: list[tuple[str, int, float]] = field(default_factory=list)
+    """Actors (not the monitor) that exited during the run: node, exit code, wall time."""
 
     # -- signals
 
@@ -330,7 +393,7 @@ class Launcher:
                     cwd=REPO_ROOT,
                     env=env,
                     start_new_session=True,
-                    preexec_fn=_die_with_parent if sys.platform == "linux" else None,
+                    preexec_fn=_die_with_parent(os.getpid()) if sys.platform == "linux" else None,
                 )
             except OSError:
                 log_file.close()
@@ -362,6 +425,11 @@ class Launcher:
             with contextlib.suppress(subprocess.TimeoutExpired):
                 child.process.wait(timeout=5.0)
             child.log_file.close()
+        if self.run_id:
+            left = sweep(self.run_id, 0.0 if self.signals >= 2 else SWEEP_GRACE_S)
+            if left:
+                pids = ", ".join(str(pid) for pid in left)
+                self.notes.append(f"swept {len(left)} leftover process(es) of the run: {pids}")
 
     @staticmethod
     def _signal(child: Child, signum: signal.Signals) -> None:
@@ -413,13 +481,19 @@ class Launcher:
             if now > deadline:
                 self.notes.append(f"timeout: the run did not end within {timeout_s:g} s")
                 return None
-            if crashed_at is None:
-                for child in self.children.values():
-                    rc = child.process.poll()
-                    if child.node != self.monitor and rc is not None:
-                        self.notes.append(f"{child.node} exited during the run with code {rc}")
+            for child in self.children.values():
+                rc = child.process.poll()
+                seen = any(node == child.node for node, _, _ in self.exits)
+                if child.node != self.monitor and rc is not None and not seen:
+                    self.exits.append((child.node, rc, time.time()))
+                    after = "" if crashed_at is None else " (after an earlier loss)"
+                    self.notes.append(f"{child.node} exited during the run with code {rc}{after}")
+                    if crashed_at is None:
                         crashed_at = now
-            elif now - crashed_at > CRASH_WAIT_S:
+            if crashed_at is not None and now - crashed_at > CRASH_WAIT_S:
+                self.notes.append(
+                    f"the monitor did not end the run within {CRASH_WAIT_S:g} s of the loss"
+                )
                 return None
             time.sleep(0.05)
 
@@ -515,6 +589,8 @@ class UpRun:
                 trace_fields=list(TRACE_FIELDS),
                 trace=harness_trace(result.trace_fields, result.trace),
             )
+        if result is not None:
+            result = self._with_losses(result)
         failed = [
             c
             for c in self.launcher.failed_children(code)
@@ -529,6 +605,25 @@ class UpRun:
             self.launcher.interrupted,
             tuple(failed),
         )
+
+    def _with_losses(self, result: RunResult) -> RunResult:
+        """``result`` with a ``lost`` crash event for every actor the launcher saw exit
+        that the monitor did not list (an unexpected loss), at its run time [s]."""
+        listed = {(c.node, c.event) for c in result.crashes or []}
+        extra = [
+            CrashEvent(
+                node=node,
+                event="lost",
+                t_s=None
+                if result.epoch_unix is None
+                else round(max(0.0, (wall - result.epoch_unix) * self.speed), 3),
+            )
+            for node, _code, wall in self.launcher.exits
+            if (node, "lost") not in listed
+        ]
+        if not extra:
+            return result
+        return result.updated(crashes=[*(result.crashes or []), *extra])
 
 
 def prepare_up(
@@ -581,10 +676,15 @@ def prepare_up(
         max_sim_s=max_sim_s,
         start_delay_s=start_delay_s,
         log_level=log_level,
-        zenoh_options={"transport/link/tx/lease": LEASE_MS},
+        zenoh_options={
+            "transport/link/tx/lease": LEASE_MS,
+            # every child's command line carries the run id: the final sweep finds it
+            "metadata": {"crosspath_run": run_id},
+        },
         trace=trace,
     )
-    return UpRun(run_id, out, Launcher(commands, out), timeout, max_sim, speed, trace)
+    launcher = Launcher(commands, out, run_id=run_id)
+    return UpRun(run_id, out, launcher, timeout, max_sim, speed, trace)
 
 
 # --------------------------------------------------------------------------- CLI
@@ -657,7 +757,7 @@ def _fail(message: str) -> int:
 def run(args: argparse.Namespace) -> int:
     """One run over Zenoh on loopback; 0 when it completed, 1 when it failed, 130/143 when
     interrupted, 2 on bad arguments."""
-    from services.daemons.monitor import format_network
+    from services.daemons.monitor import format_degraded, format_network
     from services.sim.harness import write_trace_csv
     from services.sim.results import format_summary
 
@@ -699,6 +799,8 @@ def run(args: argparse.Namespace) -> int:
     if result is not None:
         print(format_summary(result))
         print(format_network(result.network))
+        if (degraded := format_degraded(result)) is not None:
+            print(degraded)
         if args.trace is not None:
             write_trace_csv(args.trace, result.trace or [])
         if args.json is not None:

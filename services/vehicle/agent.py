@@ -15,6 +15,7 @@ daemon) passes ``now`` and inputs in and sends what comes out:
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -30,6 +31,7 @@ from protocol.messages import (
     Mode,
     ModeCommand,
     RsuBeacon,
+    VehicleLimits,
 )
 from services.model.kinematics import BodyState, Limits, TruthState
 from services.model.scenario import Scenario, VehicleParams
@@ -282,6 +284,24 @@ class VehicleAgent:
             width=self.spec.width,
             mode=self.coordination.mode,
             points=pts,
+            limits=self._declared_limits(),
+        )
+
+    def _declared_limits(self) -> VehicleLimits:
+        """The limits every path of this car declares, so that an RSU plans it with them
+        (``protocol/SPEC.md`` 2.3); unsigned until messages are signed. Rounded down to
+        the wire's resolution (1 cm/s, 0.1 m/s²): an RSU never plans the car beyond
+        what it can do (the scenario keeps accelerations >= 0.1 m/s²)."""
+        lim = self.spec.limits
+
+        def down(value: float, unit: float) -> float:
+            return max(unit, math.floor(value / unit + 1e-9) * unit)
+
+        return VehicleLimits(
+            down(lim.v_max, 0.01),
+            down(lim.accel, 0.1),
+            down(lim.decel_comfort, 0.1),
+            down(lim.lat_accel, 0.1),
         )
 
     # ------------------------------------------------------------------ control
@@ -299,7 +319,21 @@ class VehicleAgent:
         step = 0.5
         v_next = prof.speed_at(look + step)
         a_ff = (v_next * v_next - v_ref * v_ref) / (2.0 * step)
-        return a_ff + (v_ref - body.v) / self.spec.params.control_time_constant_s
+        cmd = a_ff + (v_ref - body.v) / self.spec.params.control_time_constant_s
+        return min(cmd, self._top_speed_room(body))
+
+    def _top_speed_room(self, body: BodyState) -> float:
+        """Largest command [m/s²] that keeps the car at or below V_max despite the lag.
+
+        Through the first-order actuator lag (time constant tau) the speed the car
+        settles at if the command drops to zero is w = v + a·tau, and w' equals the
+        command exactly; the speed never passes w while a > 0. Keeping w ≤ V_max over
+        the next physics step (the command is held for dt) keeps v ≤ V_max: without
+        this the car overshot to 14.03 m/s against 13.89 (issue 17).
+        """
+        lim = self.spec.limits
+        settle = body.v + body.a * lim.actuator_lag_s
+        return (lim.v_max - settle) / self.scenario.params.physics_dt_s
 
 
 def vehicle_agent(scenario: Scenario, vehicle_id: str, v2x: bool) -> VehicleAgent:

@@ -4,16 +4,37 @@ Pure: ``plan(now, ego, sensed, future_paths, coordination)`` returns a speed
 profile along the car's route and the reason its speed is capped. Rules, in
 the order DESIGN.md gives them:
 
-1. cruise at V_max, stop at the goal;
+1. cruise at V_max, stop at the goal, and in curves keep the lateral
+   acceleration within ``lat_accel_mps2``: speed ≤ sqrt(a_lat · r) along the
+   route (``services.model.kinematics.curve_speed_cap``), braking for the
+   curve at the comfortable deceleration;
 2. blind-corner caution: approaching an intersection whose crossing lanes are
    hidden, keep a speed from which the car can stop at the stop line braking
    comfortably, until the visible stretch of every crossing lane is long
    enough that an unseen car at V_max could not reach the conflict zone
    before this car has cleared it (lifted in ``C_FAST``);
-3. yield: for every known other car, from sensors or from a received future
-   path, compare conflict-zone occupancy intervals with a 1.0 s headway; the
-   car that would arrive later yields (ties within ``TIE_S``: lower id goes
-   first) and plans a stop at the stop line until the interval has passed;
+3. yield: for every known other car whose path conflicts with this car's in
+   space (its future path comes within ``d_margin_m`` of this route inside the
+   zone, or, known only from the sensors, its lane is one of the route's
+   ``crossing_lanes``: opposing straight traffic and turns that do not cross
+   never count; nor does traffic from this car's own approach, which is
+   followed, not crossed) and in time (conflict-zone occupancy intervals
+   within the 1.0 s headway), the car without right of way plans a stop at
+   the stop line until the interval has passed. **Right of way** at a blind,
+   unsignalled intersection: (a) a car that can no longer stop before the zone
+   (emergency braking) goes first; (b) then the earlier arrival at the stop
+   line (``line_arrival``: on at the current speed, then braking comfortably to
+   a stop at the line, from the distance along the lane and the speed, which
+   both cars see alike; as a run time, so a future path a period old gives the
+   sender's own verdict), when the two differ by more than ``TIE_S`` = 0.3 s;
+   (c) then right before left (the car coming from the other's right goes
+   first); (d) the lower id only as the last tie-break (opposing or
+   same-direction ties). The verdict is taken when the two first conflict and
+   kept, both ways, until the other has cleared the zone or no longer
+   conflicts (commitment): estimates shift as both slow for the corner, and a
+   swapped order makes a car stop twice or both go. Only a committed car
+   overrides it, and a kept yield to a car that has stopped short of the zone
+   is re-judged, so two cars never wait for each other;
 4. emergency braking for any sensed car on the path, in every mode.
 
 Our interpretation where DESIGN.md is silent (also in the README):
@@ -27,17 +48,22 @@ Our interpretation where DESIGN.md is silent (also in the README):
   possible* arrival (driving off at the limits from its current speed), and
   then so does this car's own.
 - Against a car known only from the sensors, both sides use the earliest
-  possible arrival along their lanes, rather than DESIGN.md's constant-velocity
-  prediction: constant velocity calls a slow, accelerating car far off, and
-  the two cars, each predicting the other at constant velocity and itself by
-  its plan, then both believe they are first. With the earliest arrival both
-  compute the same numbers from the same facts and agree on who goes first.
+  possible occupancy along their lanes for the time conflict, rather than
+  DESIGN.md's constant-velocity prediction: constant velocity calls a slow,
+  accelerating car far off, and the two cars, each predicting the other at
+  constant velocity and itself by its plan, then both believe they are first.
+- Right of way, though, goes by ``line_arrival``, not by the earliest possible
+  arrival: as both cars brake for the blind corner the earliest arrivals
+  compress a 0.3-1 s start gap into a tie, and right before left then let the
+  later car go first (issue 17). ``line_arrival`` keeps two cars on the same
+  profile their start gap apart all the way in.
 - A yield can only be planned while the car can still stop before the stop
   line with emergency deceleration; past that point it is committed.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import StrEnum
@@ -45,9 +71,9 @@ from enum import StrEnum
 import numpy as np
 
 from protocol.messages import FuturePath
-from services.model.geometry import Polyline, footprint, visible_mask
-from services.model.kinematics import Limits, TruthState
-from services.model.scenario import Crossing, Scenario, VehicleParams
+from services.model.geometry import Polyline, footprint, visible_mask, wrap_angle
+from services.model.kinematics import Limits, TruthState, curve_speed_cap
+from services.model.scenario import SAME_APPROACH_RAD, Crossing, Scenario, VehicleParams
 from services.vehicle.profile import (
     FloatArray,
     SpeedProfile,
@@ -66,7 +92,22 @@ LOOKAHEAD_M = 220.0
 """How far ahead the planner looks [m] (≥ 10 s at V_max, plus stopping room)."""
 
 TIE_S = 0.3
-"""Arrival times closer than this are a tie, decided by id [s]."""
+"""Stop-line arrival times closer than this are a tie, decided by right before left,
+then by id [s]."""
+
+ARRIVED_M = 0.0
+"""A car whose front is within this of its stop line has arrived (arrival time 0) [m].
+Zero: a car waiting just before its line must not tie with one that is already
+through it (with 1 m, the two arrivals compressed into a tie as both slowed and the
+order flipped half-way)."""
+
+ARRIVAL_FLOOR_MPS = 1.0
+"""A slower or stopped car's stop-line arrival is estimated as if it crept on at this
+speed (``line_arrival``) [m/s]."""
+
+COMMIT_MARGIN_M = 0.3
+"""A car that cannot stop this far before the conflict zone braking at the emergency
+limit is committed: it goes first [m]."""
 
 # Stop margin, creep speed, caution sampling, emergency gap: the scenario's
 # [vehicle_params] (services.model.scenario.VehicleParams), in ``AutonomousPlanner.params``.
@@ -77,6 +118,7 @@ class Reason(StrEnum):
 
     CRUISE = "cruise"
     GOAL = "goal"
+    CURVE = "curve"
     CAUTION = "caution"
     YIELD = "yield"
     EMERGENCY = "emergency"
@@ -87,6 +129,7 @@ class Reason(StrEnum):
 _PRIORITY = (
     Reason.CRUISE,
     Reason.GOAL,
+    Reason.CURVE,
     Reason.COORDINATED,
     Reason.CAUTION,
     Reason.YIELD,
@@ -151,11 +194,24 @@ class AutonomousPlanner:
     route: Polyline = field(init=False)
     crossings: list[Crossing] = field(init=False)
     _zones: dict[str, FloatArray] = field(init=False)
+    _crossing_lanes: dict[str, frozenset[str]] = field(init=False)
+    _stop_offset: dict[str, float] = field(init=False)
+    _order: dict[tuple[str, str], bool] = field(init=False, default_factory=dict)
+    _next_order: dict[tuple[str, str], bool] = field(init=False, default_factory=dict)
 
     def __post_init__(self) -> None:
         self.route = self.scenario.route(self.route_id)
         self.crossings = self.scenario.crossings(self.route_id, self.length)
         self._zones = {i.id: self.scenario.zone_polygon(i.id) for i in self.scenario.intersections}
+        self._stop_offset = {i.id: i.stop_line_offset_m for i in self.scenario.intersections}
+        # the lanes whose traffic crosses or merges with this route, per intersection: only
+        # these are watched round a blind corner or yielded to when known from the sensors
+        self._crossing_lanes = {
+            c.intersection: frozenset(
+                a.lane for a in self.scenario.crossing_lanes(self.route_id, c.intersection)
+            )
+            for c in self.crossings
+        }
 
     # ------------------------------------------------------------------ planning
     def plan(
@@ -175,6 +231,17 @@ class AutonomousPlanner:
         base = np.full_like(s, lim.v_max)
         constraints: list[_Constraint] = [_Constraint(Reason.CRUISE, base)]
         constraints.append(_Constraint(Reason.GOAL, stop_cap(s, self.goal_s, lim.decel_comfort)))
+        # held from a little before the curve: the speed follows the plan through the
+        # actuator lag, so the cap starts the distance covered in one lag earlier
+        curve = curve_speed_cap(self.route, s, lim.lat_accel, lim.v_max, pad_m=DS)
+        if float(curve.min()) < lim.v_max:
+            lead = float(curve.min()) * (lim.actuator_lag_s + self.params.control_lookahead_s)
+            curve = curve_speed_cap(self.route, s, lim.lat_accel, lim.v_max, pad_m=DS + lead)
+        if float(curve.min()) < lim.v_max:
+            # braking for a curve is planned at the comfortable deceleration
+            constraints.append(
+                _Constraint(Reason.CURVE, backward_pass(curve, DS, lim.decel_comfort))
+            )
         if coordination.target_v is not None and coordination.target_s is not None:
             # the coordinated speeds are reached early (as caps) but never by braking harder
             # than comfortably from the current speed (the paper's smooth C_SLOW deceleration)
@@ -197,16 +264,19 @@ class AutonomousPlanner:
 
         unyielded = self._combine(now, s, v0, constraints)
         yield_to: list[str] = []
+        self._next_order = {}
         if not coordination.skip_yield:
             for crossing in self._crossings_ahead(s0):
                 others = self._yield_targets(
                     now, ego, crossing, unyielded.profile, sensed, future_paths
                 )
                 if others:
-                    cap = self._stop_line_cap(s, s0, v0, crossing)
+                    cap = self._stop_line_cap(s, s0, v0, crossing, soonest=True)
                     if cap is not None:
                         constraints.append(_Constraint(Reason.YIELD, cap, ",".join(others)))
                         yield_to.extend(others)
+        if not coordination.skip_yield:
+            self._order = self._next_order
         if not yield_to:
             return Plan(
                 unyielded.profile, unyielded.reason, unyielded.detail, unyielded.profile, ()
@@ -245,19 +315,24 @@ class AutonomousPlanner:
                 yield c
 
     def _stop_line_cap(
-        self, s: FloatArray, s0: float, v0: float, crossing: Crossing
+        self, s: FloatArray, s0: float, v0: float, crossing: Crossing, soonest: bool = False
     ) -> FloatArray | None:
         """Cap for stopping at the stop line, or None if the car is committed.
 
         Braking comfortably when it can, harder when it must; if even emergency
         braking cannot stop it at the line, it stops short of the conflict zone
-        instead; if it cannot do that either, it is committed and goes on.
+        instead; if it cannot do that either, it is committed and goes on. With
+        ``soonest`` (a yield), a car that can no longer stop at the line (it crept on to
+        see round the corner, or is crawling right at it) stops as soon as it comfortably
+        can, short of the zone, rather than rolling on to the zone's edge: it would only
+        start again from there, slower.
         """
         lim = self.limits
-        for s_stop in (
-            crossing.s_stop - self.params.stop_margin_m,
-            crossing.s_in - self.length / 2.0 - 0.3,
-        ):
+        line = crossing.s_stop - self.params.stop_margin_m
+        edge = crossing.s_in - self.length / 2.0 - 0.3
+        here = s0 + v0 * v0 / (2.0 * lim.decel_comfort)
+        stops = (line, here, edge) if soonest and here <= edge else (line, edge)
+        for s_stop in stops:
             room = s_stop - s0
             if room < -0.3:
                 continue  # already past this point
@@ -367,11 +442,13 @@ class AutonomousPlanner:
         sensed: Sequence[TruthState],
         future_paths: Mapping[str, FuturePath],
     ) -> list[str]:
+        """The cars this one must let through ``crossing`` first (see ``_goes_first``)."""
         if ego.s - self.length / 2.0 > crossing.s_in:
             return []  # already in the zone: go on
         planned = self._own_interval(now, ego, crossing, unyielded)
         earliest = self._earliest_interval(now, ego.s, ego.speed, crossing, self.length)
         zone = self._zones[crossing.intersection]
+        mine = self._own_arrival(now, ego, crossing)
         out: list[str] = []
         seen: set[str] = set()
         for fp_id, fp in future_paths.items():
@@ -381,29 +458,157 @@ class AutonomousPlanner:
             theirs = self._fp_interval(now, fp, zone, crossing)
             if theirs is None:
                 continue
-            if planned is not None and theirs.planned:
-                mine, other_iv = planned, theirs.interval
+            arrival = self._fp_arrival(fp, zone, crossing)
+            if arrival is None:
+                continue  # its path does not cross ours here
+            if self._order.get((crossing.intersection, fp_id), False) and theirs.planned:
+                # its right of way is settled: go only once its plan leaves room even for
+                # this car's earliest arrival (its own plan, slowed by caution, and the
+                # yield it causes would alternate with the release, step by step)
+                own_iv, other_iv = earliest, theirs.interval
+            elif planned is not None and theirs.planned:
+                own_iv, other_iv = planned, theirs.interval
             else:
                 # one of the two stops short of the zone: both sides judge by earliest arrival
-                mine, other_iv = earliest, self._fp_earliest(now, fp, zone, crossing)
-            if self._should_yield(mine, other_iv, fp_id):
+                own_iv, other_iv = earliest, self._fp_earliest(now, fp, zone, crossing)
+            overlap = own_iv.overlaps(other_iv, self.headway_s)
+            moving = fp.speed > self.params.creep_mps / 2.0
+            if self._decide(crossing, fp_id, overlap, arrival, mine, moving):
                 out.append(fp_id)
         for other in sensed:
             if other.id in seen:
                 continue
-            sensed_iv = self._sensed_interval(now, other, crossing)
-            if sensed_iv is not None and self._should_yield(earliest, sensed_iv, other.id):
+            found = self._sensed_conflict(now, other, crossing)
+            if found is None:
+                continue
+            sensed_iv, arrival = found
+            overlap = earliest.overlaps(sensed_iv, self.headway_s)
+            moving = other.speed > self.params.creep_mps / 2.0
+            if self._decide(crossing, other.id, overlap, arrival, mine, moving):
                 out.append(other.id)
         return out
 
-    def _should_yield(self, mine: Interval, theirs: Interval, other_id: str) -> bool:
-        if not mine.overlaps(theirs, self.headway_s):
+    def _decide(
+        self,
+        crossing: Crossing,
+        other_id: str,
+        overlap: bool,
+        other: _Arrival,
+        mine: _Arrival,
+        moving: bool,
+    ) -> bool:
+        """Yield to this car? The verdict is taken when the two first conflict and then
+        kept (commitment), both ways, while the other stays a conflict here: estimated
+        arrivals shift as both slow for the blind corner, and a car that swapped the
+        order half-way would stop twice, or go together with the other. Both cars take
+        it from the same facts (``_goes_first``), so they agree. Exceptions: a committed
+        car goes first (and the verdict follows); a kept yield to a car that has stopped
+        short of the zone is re-judged, so two cars never wait for each other (both
+        then judge the same standing facts and agree)."""
+        key = (crossing.intersection, other_id)
+        kept = self._order.get(key)
+        if kept is None and not overlap:
+            return False  # no conflict yet: no verdict
+        if other.committed != mine.committed:
+            first = other.committed
+        elif kept is None or (kept and not moving):
+            first = self._goes_first(other, mine, other_id)
+        else:
+            first = kept
+        self._next_order[key] = first
+        return overlap and first
+
+    def _goes_first(self, other: _Arrival, mine: _Arrival, other_id: str) -> bool:
+        """Does the other car have right of way over this one? Both cars decide from the
+        same facts, so they agree: a committed car first, then the earlier stop-line
+        arrival (beyond ``TIE_S``), then right before left, then the lower id."""
+        if other.committed != mine.committed:
+            return other.committed
+        if other.t_line > mine.t_line + TIE_S:
             return False
-        if mine.t_in > theirs.t_in + TIE_S:
+        if mine.t_line > other.t_line + TIE_S:
             return True
-        if abs(mine.t_in - theirs.t_in) <= TIE_S:
-            return other_id < self.vehicle_id
-        return False
+        rel = wrap_angle(other.heading - mine.heading)
+        if math.pi / 4.0 < rel < 3.0 * math.pi / 4.0:
+            return True  # it comes from this car's right
+        if -3.0 * math.pi / 4.0 < rel < -math.pi / 4.0:
+            return False  # it comes from the left: this car has the right of way
+        return other_id < self.vehicle_id
+
+    def _arrival(
+        self, stamp: float, d_zone: float, speed: float, offset: float, heading: float
+    ) -> _Arrival:
+        """Arrival of a car whose centre was ``d_zone`` [m] before entering the (grown) zone
+        at run time ``stamp`` [s] (now for this car and sensed ones, the send time of a
+        future path): an absolute time, so that a path received a period late gives the
+        same verdict as the sender's own fresh state (``line_arrival`` runs down at 1 s/s
+        along the blind-corner plan)."""
+        lim = self.limits
+        d_line = d_zone - offset - ARRIVED_M
+        t_line = stamp + line_arrival(d_line, speed, self.scenario.params.decel_comfort_mps2)
+        committed = speed * speed / (2.0 * lim.decel_emergency) > d_zone - COMMIT_MARGIN_M
+        return _Arrival(t_line, committed and speed > 0.0, heading)
+
+    def _own_arrival(self, now: float, ego: TruthState, crossing: Crossing) -> _Arrival:
+        d_zone = crossing.s_in - self.length / 2.0 - ego.s
+        heading = self.route.heading_at(crossing.s_in)
+        offset = self._stop_offset[crossing.intersection]
+        return self._arrival(now, d_zone, ego.speed, offset, heading)
+
+    def _fp_arrival(self, fp: FuturePath, zone: FloatArray, crossing: Crossing) -> _Arrival | None:
+        """Arrival of a car known from its future path, or None when its path does not come
+        within ``d_margin_m`` of this route in the zone (opposing traffic, a turn that does
+        not cross) or it comes from this car's own approach (followed, not crossed)."""
+        pts = fp.points
+        grown = _grow_box(zone, fp.length / 2.0)
+        inside = _in_box(pts[:, 0], pts[:, 1], grown)
+        here_inside = bool(_in_box(np.array([fp.x]), np.array([fp.y]), grown)[0])
+        offset = self._stop_offset[crossing.intersection]
+        margin = self.scenario.params.d_margin_m
+        if np.any(inside):
+            idx = np.flatnonzero(inside)
+            _s, lat = self.route.project_many(np.ascontiguousarray(pts[idx, 0:2]))
+            close = bool(np.any(np.abs(lat) < margin))
+            exits = idx[-1] < pts.shape[0] - 1
+            if not close and exits and not here_inside:
+                return None  # passes through the zone without coming near this route
+            # (a car still in the zone keeps counting until it has left it, even when the
+            # rest of its path is clear of this route: the zone is free only then)
+            first = int(idx[0])
+            if first > 0:
+                dx, dy = pts[first, 0] - pts[first - 1, 0], pts[first, 1] - pts[first - 1, 1]
+                heading = math.atan2(dy, dx) if dx * dx + dy * dy > 1e-6 else fp.heading
+            else:
+                heading = fp.heading
+            if not close and not self._lane_crosses(fp.x, fp.y, fp.heading, crossing):
+                return None
+            if here_inside:
+                d_zone = 0.0
+            else:
+                xy = np.vstack(([fp.x, fp.y], pts[: first + 1, 0:2]))
+                d_zone = float(np.sum(np.hypot(*np.diff(xy, axis=0).T)))
+        else:
+            if not self._lane_crosses(fp.x, fp.y, fp.heading, crossing):
+                return None
+            heading = fp.heading
+            cx, cy = _box_center(zone)
+            d_zone = max(float(np.hypot(fp.x - cx, fp.y - cy)) - _box_radius(zone), 0.0)
+        own = self.route.heading_at(crossing.s_in)
+        if abs(wrap_angle(heading - own)) <= SAME_APPROACH_RAD:
+            return None  # the same approach: car following, not right of way
+        stamp = fp.header.time_us * 1e-6
+        on_lane = self._on_lane(stamp, fp.x, fp.y, fp.heading, fp.speed, fp.length, crossing)
+        if on_lane is not None:
+            return on_lane[2]  # measured along its lane: the numbers its sender computes
+        return self._arrival(stamp, d_zone, fp.speed, offset, heading)
+
+    def _lane_crosses(self, x: float, y: float, heading: float, crossing: Crossing) -> bool:
+        """Does the lane a car at (x, y) with ``heading`` drives in cross this route here?
+        A car on no known lane is assumed to."""
+        found = self.scenario.lane_of(x, y, heading)
+        if found is None:
+            return True
+        return found[0] in self._crossing_lanes.get(crossing.intersection, frozenset())
 
     def _fp_interval(
         self, now: float, fp: FuturePath, zone: FloatArray, crossing: Crossing
@@ -443,30 +648,70 @@ class AutonomousPlanner:
         virtual = Crossing(crossing.intersection, dist, dist + 2.0 * radius, 0.0, 0.0)
         return self._earliest_interval(now, 0.0, fp.speed, virtual, fp.length)
 
-    def _sensed_interval(
+    def _sensed_conflict(
         self, now: float, other: TruthState, crossing: Crossing
-    ) -> Interval | None:
-        """Occupancy of the zone by a sensed car along its lane: the earliest it can be there.
+    ) -> tuple[Interval, _Arrival] | None:
+        """Occupancy of the zone by a sensed car along its lane (the earliest it can be
+        there) and its arrival, or None when its lane does not cross this route here.
 
         Constant velocity would call a slow car far off; a car that can still
         accelerate may arrive much sooner, and both cars must reach the same
         verdict from the same facts, so both sides use the earliest arrival.
         """
-        found = self.scenario.lane_of(other.x, other.y, other.heading)
+        found = self._on_lane(
+            now, other.x, other.y, other.heading, other.speed, other.length, crossing
+        )
+        if found is None:
+            return None
+        c, s_other, arrival = found
+        iv = self._earliest_interval(now, s_other, other.speed, c, other.length)
+        return iv, arrival
+
+    def _on_lane(
+        self,
+        stamp: float,
+        x: float,
+        y: float,
+        heading: float,
+        speed: float,
+        length: float,
+        crossing: Crossing,
+    ) -> tuple[Crossing, float, _Arrival] | None:
+        """A car at (x, y) on a lane that crosses this route at ``crossing``, and not yet
+        through it: that lane's crossing, the car's arc length on the lane [m] and its
+        arrival (state taken at ``stamp``); else None. Measured along the lane exactly
+        as this car measures itself along its route, so both compute the same numbers."""
+        found = self.scenario.lane_of(x, y, heading)
         if found is None:
             return None
         lane_id, s_other = found
+        if lane_id not in self._crossing_lanes.get(crossing.intersection, frozenset()):
+            return None  # opposing, parallel or non-crossing traffic never conflicts here
         lane_cross = [
             c
-            for c in self.scenario.lane_crossings(lane_id, other.length)
+            for c in self.scenario.lane_crossings(lane_id, length)
             if c.intersection == crossing.intersection
         ]
         if not lane_cross:
             return None
         c = lane_cross[0]
-        if s_other - other.length / 2.0 > c.s_out:
+        if s_other - length / 2.0 > c.s_out:
             return None  # already through
-        return self._earliest_interval(now, s_other, other.speed, c, other.length)
+        lane = self.scenario.lane(lane_id)
+        d_zone = c.s_in - length / 2.0 - s_other
+        offset = self._stop_offset[crossing.intersection]
+        return c, s_other, self._arrival(stamp, d_zone, speed, offset, lane.heading_at(c.s_in))
+
+
+@dataclass(frozen=True, slots=True)
+class _Arrival:
+    """When a car reaches its stop line (``line_arrival`` from its state, added to the
+    time of that state; the time of the state once past the line) [s, run time], whether
+    it is committed, and its heading entering the zone [rad]."""
+
+    t_line: float
+    committed: bool
+    heading: float
 
 
 @dataclass(frozen=True, slots=True)
@@ -475,6 +720,24 @@ class _Known:
 
     interval: Interval
     planned: bool
+
+
+def line_arrival(d_line: float, speed: float, decel: float) -> float:
+    """Stop-line arrival [s from now] of a car ``d_line`` [m] before its line at ``speed``
+    [m/s], on the plan a careful car follows at a blind corner: on at its current speed,
+    then braking at ``decel`` [m/s²] (the scenario's comfortable deceleration, the same
+    for every car) to a stop at the line: ``d / max(v, ARRIVAL_FLOOR_MPS) + v / (2 decel)``.
+
+    Both cars compute it from facts both see alike (distance along the lane, speed). Two
+    cars that drive the same speed profile ``δ`` apart get estimates ``δ`` apart all the
+    way in (exact while cruising and while braking at ``decel``), where the earliest
+    possible arrival compressed the gap into a tie as both slowed for the corner (issue
+    17). 0 once at or past the line; a stopped car counts as creeping at the floor.
+    """
+    if d_line <= 0.0:
+        return 0.0
+    v = max(speed, 0.0)
+    return d_line / max(v, ARRIVAL_FLOOR_MPS) + v / (2.0 * decel)
 
 
 def _in_box(x: FloatArray, y: FloatArray, box: tuple[float, float, float, float]) -> FloatArray:

@@ -29,7 +29,7 @@ def test_measure_sizes_and_keys() -> None:
     assert set(result) >= REQUIRED
     sizes = result["sizes_bytes"]
     assert set(sizes) == set(bench.FORMATS) == set(result["encode_decode_us"])
-    assert sizes["crosspath"] == 292
+    assert sizes["crosspath"] == 297
     assert sizes["crosspath"] <= 800
     # the paper's JSON: about 60 KB for 120 points, at least 50 times ours
     assert 50_000 <= sizes["paper_json"] <= 70_000
@@ -40,7 +40,7 @@ def test_measure_sizes_and_keys() -> None:
     assert result["speedup_vs_json"] == pytest.approx(
         result["encode_decode_us"]["json"] / result["encode_decode_us"]["crosspath"]
     )
-    assert result["kinds"]["future_path"] == {"bytes": 292, "max_points": 230}
+    assert result["kinds"]["future_path"] == {"bytes": 297, "max_points": 230}
     assert result["max_points"]["coordinated_path"] == max_points(Kind.COORDINATED_PATH)
 
 
@@ -70,7 +70,7 @@ def test_cli_writes_json(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> 
     assert bench.run(args) == 0
     result = json.loads(out.read_text())
     assert set(result) >= REQUIRED
-    assert result["sizes_bytes"]["crosspath"] == 292
+    assert result["sizes_bytes"]["crosspath"] == 297
     printed = capsys.readouterr().out
     assert "paper_json" in printed and "speedup" in printed
 

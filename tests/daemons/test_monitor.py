@@ -19,6 +19,7 @@ from services.daemons.monitor import (
     format_network,
     network_summary,
     new_run_id,
+    rebuild_result,
 )
 from services.edge.lifecycle import EXIT_FAILED, serve
 from services.edge.plumbing import (
@@ -87,8 +88,13 @@ class FakeActors:
         for node in self.nodes:
             self.stats(node, message.run_id, final=False)
 
-    def stats(self, node: str, run_id: str, final: bool, **counts: int) -> None:
-        report = StatsReport(node, run_id, final, snapshot(node, **counts))
+    def stats(
+        self, node: str, run_id: str, final: bool, late_ticks: int | None = None, **counts: int
+    ) -> None:
+        snap = snapshot(node, **counts)
+        if late_ticks is not None:
+            snap["late_ticks"] = late_ticks
+        report = StatsReport(node, run_id, final, snap)
         self.transport.publish(keyexpr.stats(node), encode_stats(report), RELIABLE_QOS)
 
     def truth(self, run_id: str, vid: str, step: int, x: float, speed: float = 5.0) -> None:
@@ -167,9 +173,18 @@ async def test_monitor_runs_records_and_builds_the_result(tmp_path: Path) -> Non
     assert prov is not None and prov.channel.kind == "zenoh" and prov.policy == "paper"
     assert prov.scenario_sha256 == hashlib.sha256(PAPER.read_bytes()).hexdigest()
     assert set(prov.policy_params) == {"rsu1"}
+    # issue 16: a clean run says so; the step log rebuilds the same result
+    assert result.degraded is False and result.truth_gaps == {"A": 0, "B": 0}
+    assert result.late_ticks == {"A": 0, "B": 0, "rsu1": 0}
+    log = tmp_path / "result.steps.jsonl"
+    assert log.is_file()
+    rebuilt = rebuild_result(tmp_path)
+    assert rebuilt.error is None and rebuilt.rebuilt_from == str(log)
+    same = ("collisions", "min_gap_m", "min_pet_s", "sim_s", "truth", "network", "vehicles")
+    assert {k: getattr(rebuilt, k) for k in same} == {k: getattr(result, k) for k in same}
 
 
-async def test_monitor_fills_a_missing_truth_step_and_fails_on_a_lost_actor() -> None:
+async def test_monitor_counts_a_missing_truth_step_and_fails_on_a_lost_actor() -> None:
     bus = MemoryBus()
     actors = FakeActors(bus, ("A", "B", "rsu1"))
     actors.open()
@@ -187,7 +202,31 @@ async def test_monitor_fills_a_missing_truth_step_and_fails_on_a_lost_actor() ->
     assert mon.exit_code == 1
     assert mon.failure is not None and mon.failure.startswith("B lost")
     assert actors.stops and actors.stops[-1].reason.startswith("B lost")
-    assert mon.result is not None and mon.result.error == mon.failure
+    result = mon.result
+    assert result is not None and result.error == mon.failure
+    assert result.truth_gaps is not None and result.truth_gaps["B"] >= 1
+    assert result.truth_gaps["A"] == 0 and result.degraded is True
+
+
+async def test_late_ticks_of_an_actor_mark_the_run_degraded() -> None:
+    bus = MemoryBus()
+    actors = FakeActors(bus, ("A", "B", "rsu1"))
+    actors.open()
+    mon = monitor(bus, run_id="run-8", max_sim_s=0.2, stats_wait_s=2.0)
+    task = asyncio.ensure_future(serve(mon, install_signals=False))
+    await wait_for(lambda: bool(actors.starts))
+    for step in range(5):
+        for vid in ("A", "B"):
+            actors.truth("run-8", vid, step, -200.0 + step * 0.25)
+    await wait_for(lambda: bool(actors.stops))
+    actors.stats("A", "run-8", True, late_ticks=0)
+    actors.stats("B", "run-8", True, late_ticks=7)
+    actors.stats("rsu1", "run-8", True, late_ticks=0)
+    assert await asyncio.wait_for(task, 10.0) == 0
+    result = mon.result
+    assert result is not None and result.error is None
+    assert result.truth_gaps == {"A": 0, "B": 0}  # every step's truth came
+    assert result.late_ticks == {"A": 0, "B": 7, "rsu1": 0} and result.degraded is True
 
 
 async def test_monitor_fails_when_an_actor_never_acknowledges() -> None:

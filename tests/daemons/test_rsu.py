@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import math
+import time
+from collections.abc import Callable
 
 import numpy as np
 import pytest
@@ -86,6 +87,21 @@ class Harness:
         assert clock is not None
         return clock.now()
 
+    async def send_until(self, done: Callable[[], bool], vehicle: str = "A") -> int:
+        """Play car ``vehicle`` broadcasting its approaching future path every 0.1 s of
+        run time until ``done()`` (a new RSU listens for one reservation expiry before it
+        commands anyone); the number of paths sent."""
+        sent = 0
+        deadline = time.monotonic() + 5.0
+        while not done():
+            if time.monotonic() > deadline:
+                raise AssertionError("condition not reached in time")
+            fp = approaching_fp(self.now())
+            self.peer.publish(keyexpr.future_path(vehicle), encode(fp), V2X_QOS)
+            sent += 1
+            await asyncio.sleep(0.1 / 5.0)  # the tests run at speed 5
+        return sent
+
 
 async def test_rsu_stays_idle_outside_rsu_mode() -> None:
     async with Harness() as h:
@@ -102,8 +118,7 @@ async def test_rsu_beacons_initiates_and_terminates_when_the_run_stops() -> None
         key, beacon = next((k, m) for k, m in h.received if isinstance(m, RsuBeacon))
         assert key == keyexpr.rsu_beacon("rsu1") and isinstance(beacon, RsuBeacon)
         assert beacon.intersection == "X1" and beacon.radius == 150.0
-        h.peer.publish(keyexpr.future_path("A"), encode(approaching_fp(h.now())), V2X_QOS)
-        await wait_for(lambda: bool(h.commands(Command.INITIATE)))
+        await h.send_until(lambda: bool(h.commands(Command.INITIATE)))
         initiation = h.commands(Command.INITIATE)[0]
         assert initiation.vehicle == "A" and initiation.mode is Mode.C_FAST
         await wait_for(lambda: any(isinstance(m, CoordinatedPath) for _, m in h.received))
@@ -124,8 +139,7 @@ async def test_signal_stop_terminates_coordinated_cars_until_they_show_auto() ->
     async with Harness() as h:
         h.control(start_message("run-2", RunMode.RSU, speed=5.0))
         await wait_for(lambda: h.daemon.active is not None)
-        h.peer.publish(keyexpr.future_path("A"), encode(approaching_fp(h.now())), V2X_QOS)
-        await wait_for(lambda: bool(h.commands(Command.INITIATE)))
+        await h.send_until(lambda: bool(h.commands(Command.INITIATE)))
 
         def on_termination(key: str, payload: bytes) -> None:
             message = decode(payload)
@@ -153,9 +167,9 @@ async def test_rsu_counts_garbage_on_its_keys_and_keeps_working() -> None:
         h.peer.publish(keyexpr.future_path("B"), encode(wrong), V2X_QOS)
         await wait_for(lambda: h.daemon.shell.stats.stream("fp").malformed == 4)
         assert h.daemon.shell.stats.stream("ap").malformed == 3
-        h.peer.publish(keyexpr.future_path("A"), encode(approaching_fp(h.now())), V2X_QOS)
-        await wait_for(lambda: bool(h.commands(Command.INITIATE)))
-        assert math.isclose(h.daemon.shell.stats.stream("fp").msgs_rx, 1)
+        sent = await h.send_until(lambda: bool(h.commands(Command.INITIATE)))
+        await wait_for(lambda: h.daemon.shell.stats.stream("fp").msgs_rx == sent)
+        assert h.daemon.shell.stats.stream("fp").malformed == 4  # the valid ones were not
         h.control(StopRun("run-3"))
         await wait_for(lambda: h.daemon.runs_done == 1)
 
@@ -173,9 +187,10 @@ async def test_a_bug_in_the_rsu_core_stops_the_daemon_with_its_traceback(
         h.control(start_message("run-5", RunMode.RSU, speed=5.0))
         await wait_for(lambda: h.daemon.active is not None)
         with caplog.at_level(logging.INFO, logger="crosspath"):
-            h.peer.publish(keyexpr.future_path("A"), encode(approaching_fp(h.now())), V2X_QOS)
             assert h.task is not None
-            assert await asyncio.wait_for(h.task, 10.0) == EXIT_FAILED
+            task = h.task
+            await h.send_until(task.done)
+            assert await asyncio.wait_for(task, 10.0) == EXIT_FAILED
     finally:
         h.stop.set()
         h.peer.close()

@@ -25,6 +25,7 @@ from protocol import (
     Mode,
     ModeCommand,
     RsuBeacon,
+    VehicleLimits,
     codec,
     decode,
     encode,
@@ -94,12 +95,12 @@ def test_max_points_per_kind() -> None:
 def test_realistic_120_point_future_path_size() -> None:
     message = sample_future_path(120)
     assert message.points.shape == (120, 3)
-    assert len(encode(message)) == 292
+    assert len(encode(message)) == 297
 
 
 def test_worst_case_120_point_future_path_is_at_most_800_bytes() -> None:
     data = encode(path_message(Kind.FUTURE_PATH, 120))
-    assert len(data) == 17 + 32 + 20 + 12 + 119 * 6 == 795
+    assert len(data) == 17 + 32 + 25 + 12 + 119 * 6 == 800
     back = decode(data)
     assert isinstance(back, FuturePath)
     assert back.points.shape == (120, 3)
@@ -108,8 +109,8 @@ def test_worst_case_120_point_future_path_is_at_most_800_bytes() -> None:
 def test_sizes_of_every_kind_at_120_points() -> None:
     sizes = {name: len(encode(m)) for name, m in sample_messages(120).items()}
     assert sizes == {
-        "future_path": 292,
-        "autonomous_path": 292,
+        "future_path": 297,
+        "autonomous_path": 297,
         "coordinated_path": 403,
         "mode_command": 30,
         "rsu_beacon": 38,
@@ -156,7 +157,7 @@ def test_zero_and_one_point_paths_round_trip() -> None:
         pts = np.array([[1.0, 2.0, 12.5]])[:n]
         m = fp(points=pts)
         data = encode(m)
-        assert len(data) == 17 + 5 + 20 + 12 * n
+        assert len(data) == 17 + 5 + 25 + 12 * n
         assert_same(m, decode(data))
         c = cp(points=pts, speeds=np.array([3.0])[:n])
         assert_same(c, decode(encode(c)))
@@ -165,7 +166,7 @@ def test_zero_and_one_point_paths_round_trip() -> None:
 def test_narrow_columns_are_chosen() -> None:
     # x changes by 1.15 m, y is constant, t by 100 ms: 2 bytes per point after the first
     m = sample_future_path(120)
-    assert len(encode(m)) == 17 + 5 + 20 + 12 + 119 * 2
+    assert len(encode(m)) == 17 + 5 + 25 + 12 + 119 * 2
 
 
 @pytest.mark.parametrize("n", [0, 1, 2, 120])
@@ -200,6 +201,12 @@ def test_codec_caches_stay_bounded_whatever_peers_send() -> None:
     assert 0 < len(codec._ID_CACHE) <= codec._CACHE_MAX
     assert 0 < len(codec._ID_STRS) <= codec._CACHE_MAX
     assert 0 < len(codec._PLANS) <= codec._CACHE_MAX
+    for i in range(3 * codec._CACHE_MAX):
+        limits = VehicleLimits((100 + i) / 100, 1.5, 2.0, 2.0)  # distinct, exact on the wire
+        m = decode(encode(fp(limits=limits)))
+        assert isinstance(m, FuturePath) and m.limits == limits
+    assert 0 < len(codec._LIMITS) <= codec._CACHE_MAX
+    assert 0 < len(codec._LIMITS_WIRE) <= codec._CACHE_MAX
     with pytest.raises(EncodeError, match="invalid sender id"):
         encode(fp(header=header(sender="car 1")))
 
@@ -342,6 +349,51 @@ def test_bad_points_are_refused(rows: list[tuple[float, float, float]], match: s
         encode(fp(points=np.array(rows, dtype=np.float64), header=header(time_us=0)))
 
 
+CAR = VehicleLimits(13.89, 1.5, 2.0, 2.0)
+
+
+@pytest.mark.parametrize(
+    ("limits", "match"),
+    [
+        (dataclasses.replace(CAR, v_max=0.004), "v_max"),
+        (dataclasses.replace(CAR, v_max=100.01), "v_max"),
+        (dataclasses.replace(CAR, v_max=-8.0), "v_max"),
+        (dataclasses.replace(CAR, accel=0.04), "accel"),
+        (dataclasses.replace(CAR, accel=25.56), "accel"),
+        (dataclasses.replace(CAR, decel=-2.0), "decel"),
+        (dataclasses.replace(CAR, lat_accel=0.0), "lat_accel"),
+        (dataclasses.replace(CAR, lat_accel=math.nan), "lat_accel"),
+        (dataclasses.replace(CAR, v_max=math.inf), "v_max"),
+        ((13.89, 1.5, 2.0, 2.0), "VehicleLimits"),
+    ],
+)
+def test_absurd_limits_are_refused(limits: Any, match: str) -> None:
+    with pytest.raises(EncodeError, match=match):
+        encode(fp(limits=limits))
+
+
+def test_limits_round_trip_within_their_resolution() -> None:
+    for limits in (
+        VehicleLimits(8.0, 1.0, 1.5, 1.2),
+        VehicleLimits(0.01, 0.06, 0.1, 25.5),
+        VehicleLimits(100.0, 25.54, 1.55, 2.049),
+        None,
+    ):
+        back = decode(encode(fp(limits=limits)))
+        assert isinstance(back, FuturePath)
+        if limits is None:
+            assert back.limits is None
+            continue
+        assert back.limits is not None
+        assert abs(back.limits.v_max - limits.v_max) <= 0.005 + 1e-9
+        for name in ("accel", "decel", "lat_accel"):
+            assert abs(getattr(back.limits, name) - getattr(limits, name)) <= 0.05 + 1e-9
+        assert encode(back) == encode(fp(limits=limits))
+    # the same limits and path give the same bytes whichever kind carries them
+    ap = AutonomousPath(*[getattr(fp(), f.name) for f in dataclasses.fields(FuturePath)])
+    assert encode(ap)[3:] == encode(fp())[3:]
+
+
 def test_largest_deltas_are_accepted() -> None:
     rows = [(0, 0, 0.0), (327.67, -327.68, 65.535), (0, -0.01, 65.535)]
     m = fp(points=np.array(rows, dtype=np.float64), header=header(time_us=0))
@@ -414,8 +466,9 @@ def patched(name: str, offset: int, new: bytes) -> bytes:
 
 
 # offsets in the vectors (all senders are 5 bytes, so bodies start at 22):
-# fp-basic: x 22, y 26, speed 30, heading 32, length 34, width 36, mode 38, N 39, widths 41,
-#           first point 42; cp-slow: vehicle 22, mode 28, first speed 44;
+# fp-basic: x 22, y 26, speed 30, heading 32, length 34, width 36, v_max 38, accel 40,
+#           decel 41, lat_accel 42, mode 43, N 44, widths 46, first point 47;
+# cp-slow: vehicle 22, mode 28, first speed 44;
 # mode commands: command 28, mode 29; beacon: intersection 22, radius 34
 FP = bytes.fromhex(VECTORS["fp-basic"][1])
 
@@ -429,7 +482,8 @@ FP = bytes.fromhex(VECTORS["fp-basic"][1])
         (FP + b"\x00", "trailing"),
         (FP + bytes(MAX_DATAGRAM), "longer than"),
         (patched("fp-basic", 0, b"\xca"), "magic"),
-        (patched("fp-basic", 1, b"\x02"), "version"),
+        (patched("fp-basic", 1, b"\x01"), "version"),
+        (patched("fp-basic", 1, b"\x03"), "version"),
         (patched("fp-basic", 2, b"\x00"), "kind"),
         (patched("fp-basic", 2, b"\x06"), "kind"),
         (patched("fp-basic", 3, b"\x02"), "flag"),
@@ -444,15 +498,22 @@ FP = bytes.fromhex(VECTORS["fp-basic"][1])
         (patched("fp-basic", 32, struct.pack("<h", 31417)), "heading"),
         (patched("fp-basic", 34, struct.pack("<H", 0)), "shape"),
         (patched("fp-basic", 36, struct.pack("<H", 1001)), "shape"),
-        (patched("fp-basic", 38, b"\x03"), "mode"),
-        (patched("fp-basic", 39, struct.pack("<H", 231)), "231 points"),
-        (patched("fp-basic", 39, struct.pack("<H", 0xFFFF)), "points"),
-        (patched("fp-basic", 39, struct.pack("<H", 5)), "truncated"),
-        (patched("fp-basic", 39, struct.pack("<H", 3)), "trailing"),
-        (patched("fp-basic", 41, b"\x13"), "reserved width code 3"),
-        (patched("fp-basic", 41, b"\x51"), "beyond the columns"),
-        (patched("fp-basic", 41, b"\x12"), "truncated"),
-        (patched("fp-basic", 42, struct.pack("<i", -(10**9) - 1)), "first point"),
+        (patched("fp-basic", 38, struct.pack("<H", 10001)), "limits"),
+        (patched("fp-basic", 38, struct.pack("<H", 0)), "limits"),
+        (patched("fp-basic", 40, b"\x00"), "limits"),
+        (patched("fp-basic", 41, b"\x00"), "limits"),
+        (patched("fp-basic", 42, b"\x00"), "limits"),
+        (patched("fp-auth", 38, b"\x01"), "limits"),
+        (patched("fp-auth", 42, b"\x01"), "limits"),
+        (patched("fp-basic", 43, b"\x03"), "mode"),
+        (patched("fp-basic", 44, struct.pack("<H", 231)), "231 points"),
+        (patched("fp-basic", 44, struct.pack("<H", 0xFFFF)), "points"),
+        (patched("fp-basic", 44, struct.pack("<H", 5)), "truncated"),
+        (patched("fp-basic", 44, struct.pack("<H", 3)), "trailing"),
+        (patched("fp-basic", 46, b"\x13"), "reserved width code 3"),
+        (patched("fp-basic", 46, b"\x51"), "beyond the columns"),
+        (patched("fp-basic", 46, b"\x12"), "truncated"),
+        (patched("fp-basic", 47, struct.pack("<i", -(10**9) - 1)), "first point"),
         (patched("cp-slow", 28, b"\x00"), "AUTO"),
         (patched("cp-slow", 28, b"\x03"), "mode"),
         (patched("cp-slow", 44, struct.pack("<H", 10001)), "first point"),
@@ -474,7 +535,7 @@ def test_malformed_datagrams_are_rejected(data: bytes, match: str) -> None:
 def test_widths_must_be_zero_for_short_paths() -> None:
     one = fp(points=np.array([[1.0, 2.0, 12.5]]))
     data = bytearray(encode(one))
-    data[41] = 0x01
+    data[46] = 0x01
     with pytest.raises(DecodeError, match="fewer than 2 points"):
         decode(bytes(data))
 
@@ -495,9 +556,9 @@ def test_non_bytes_are_rejected(value: Any) -> None:
 
 def test_wider_columns_than_needed_are_accepted() -> None:
     # fp-basic re-encoded with a 2-byte x column: same message, 3 bytes longer
-    data = bytearray(FP[:41])
+    data = bytearray(FP[:46])
     data.append(0x12)  # x width 2, y 0, t 1
-    data += FP[42:54]  # first point
+    data += FP[47:59]  # first point
     data += struct.pack("<3h", 115, 115, 115)
     data += bytes([100, 100, 100])
     assert_same(VECTORS["fp-basic"][0], decode(bytes(data)))

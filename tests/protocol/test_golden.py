@@ -103,7 +103,7 @@ def reference_decode(data: bytes) -> dict[str, Any]:
     r = _Reader(data)
     out: dict[str, Any] = {}
     assert r.take("B") == 0xCB
-    assert r.take("B") == 1
+    assert r.take("B") == 2
     kind = r.take("B")
     flags = r.take("B")
     out["seq"] = r.take("I")
@@ -118,6 +118,10 @@ def reference_decode(data: bytes) -> dict[str, Any]:
             ("heading", "h"),
             ("length", "H"),
             ("width", "H"),
+            ("v_max", "H"),
+            ("accel", "B"),
+            ("decel", "B"),
+            ("lat_accel", "B"),
             ("mode", "B"),
         ]:
             out[name] = r.take(fmt)
@@ -159,6 +163,17 @@ def test_reference_decoder_agrees(name: str) -> None:
         assert ref["speed"] / 100 == message.speed and ref["heading"] / 1e4 == message.heading
         assert ref["length"] / 100 == message.length and ref["width"] / 100 == message.width
         assert ref["mode"] == message.mode
+        limits = message.limits
+        declared = (ref["v_max"], ref["accel"], ref["decel"], ref["lat_accel"])
+        if limits is None:
+            assert declared == (0, 0, 0, 0)
+        else:
+            assert (declared[0] / 100, *(v / 10 for v in declared[1:])) == (
+                limits.v_max,
+                limits.accel,
+                limits.decel,
+                limits.lat_accel,
+            )
         assert ref["points"] == message.points.tolist()
     elif isinstance(message, protocol.CoordinatedPath):
         assert ref["vehicle"] == message.vehicle and ref["mode"] == message.mode

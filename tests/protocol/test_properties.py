@@ -10,6 +10,7 @@ from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
 from protocol import (
+    FORMAT_VERSION,
     AutonomousPath,
     Command,
     CoordinatedPath,
@@ -23,6 +24,7 @@ from protocol import (
     Mode,
     ModeCommand,
     RsuBeacon,
+    VehicleLimits,
     decode,
     encode,
     max_points,
@@ -73,6 +75,14 @@ def path_points(draw: st.DrawFn, kind: Kind, time_us: int) -> tuple[FloatArray, 
     return pts, speeds
 
 
+accels = st.floats(0.06, 25.54)
+"""Declared accelerations that round to 1..255 tenths of m/s²."""
+
+limits = st.one_of(
+    st.none(), st.builds(VehicleLimits, st.floats(0.01, 100.0), accels, accels, accels)
+)
+
+
 @st.composite
 def vehicle_paths(draw: st.DrawFn) -> Message:
     h = draw(headers(path_times_us))
@@ -88,6 +98,7 @@ def vehicle_paths(draw: st.DrawFn) -> Message:
         draw(st.floats(0.01, 10)),
         draw(st.sampled_from(Mode)),
         pts,
+        draw(limits),
     )
 
 
@@ -159,7 +170,7 @@ def check_decode(data: bytes) -> Message | None:
     st.one_of(
         st.binary(max_size=1600),
         st.builds(
-            lambda kind, flags, rest: bytes([0xCB, 1, kind, flags]) + rest,
+            lambda kind, flags, rest: bytes([0xCB, FORMAT_VERSION, kind, flags]) + rest,
             st.integers(0, 7),
             st.integers(0, 3),
             st.binary(max_size=1500),

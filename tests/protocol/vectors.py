@@ -22,6 +22,7 @@ from protocol import (
     Mode,
     ModeCommand,
     RsuBeacon,
+    VehicleLimits,
     VehiclePath,
 )
 from protocol.messages import FloatArray
@@ -32,7 +33,8 @@ def _a(*rows: tuple[float, float, float] | float) -> FloatArray:
 
 
 VECTORS: dict[str, tuple[Message, str]] = {
-    # a straight eastbound future path: x deltas fit int8, y constant, 100 ms apart
+    # a straight eastbound future path: x deltas fit int8, y constant, 100 ms apart; a car's
+    # limits (50 km/h, 1.5 m/s², 2.0 m/s² braking, 2.0 m/s² lateral)
     "fp-basic": (
         FuturePath(
             Header("car-a", 1, 12_345_000),
@@ -49,13 +51,16 @@ VECTORS: dict[str, tuple[Message, str]] = {
                 (-18.2, -1.75, 12.545),
                 (-17.05, -1.75, 12.645),
             ),
+            VehicleLimits(13.89, 1.5, 2.0, 2.0),
         ),
         (
-            "cb01010001000000a85ebc0000000000056361722d61fef7ffff51ffffff7e04"
-            "0000c201b40000040011fef7ffff51ffffff00000000737373646464"
+            "cb02010001000000a85ebc0000000000056361722d61fef7ffff51ffffff7e04"
+            "0000c201b4006d050f141400040011fef7ffff51ffffff000000007373736464"
+            "64"
         ),
     ),
-    # an autonomous path with 2-byte deltas and a header time that is not whole milliseconds
+    # an autonomous path with 2-byte deltas and a header time that is not whole milliseconds,
+    # from a truck (8 m/s, 1.0 m/s², 1.5 m/s² braking, 1.2 m/s² lateral)
     "ap-wide": (
         AutonomousPath(
             Header("car-b", 4_000_000_000, 100_000_250),
@@ -67,10 +72,12 @@ VECTORS: dict[str, tuple[Message, str]] = {
             1.8,
             Mode.C_SLOW,
             _a((1.75, -30.0, 100.00025), (2.0, -26.0, 100.30025), (1.5, -22.0, 100.60025)),
+            VehicleLimits(8.0, 1.0, 1.5, 1.2),
         ),
         (
-            "cb01020000286beefae1f50500000000056361722d62af00000048f4ffff6d05"
-            "5c3dc201b40001030029af00000048f4ffff0000000019ce900190012c012c01"
+            "cb02020000286beefae1f50500000000056361722d62af00000048f4ffff6d05"
+            "5c3dc201b40020030a0f0c01030029af00000048f4ffff0000000019ce900190"
+            "012c012c01"
         ),
     ),
     # the RSU slows car-b down: one target speed per point
@@ -83,23 +90,24 @@ VECTORS: dict[str, tuple[Message, str]] = {
             _a(10.0, 9.0, 8.0),
         ),
         (
-            "cb0103002a00000050a4f60500000000057273752d31056361722d6201030054"
+            "cb0203002a00000050a4f60500000000057273752d31056361722d6201030054"
             "af00000048f4ffff00000000e803645a64649c9c"
         ),
     ),
     "mc-initiate": (
         ModeCommand(Header("rsu-1", 43, 100_050_000), "car-a", Command.INITIATE, Mode.C_FAST),
-        ("cb0104002b00000050a4f60500000000057273752d31056361722d610102"),
+        ("cb0204002b00000050a4f60500000000057273752d31056361722d610102"),
     ),
     "mc-terminate": (
         ModeCommand(Header("rsu-1", 44, 120_000_000), "car-b", Command.TERMINATE, Mode.AUTO),
-        ("cb0104002c000000000e270700000000057273752d31056361722d620200"),
+        ("cb0204002c000000000e270700000000057273752d31056361722d620200"),
     ),
     "beacon": (
         RsuBeacon(Header("rsu-1", 7, 5_000_000), "x-0", 5.0, -5.0, 150.0),
-        ("cb01050007000000404b4c0000000000057273752d3103782d30f40100000cfeffff983a0000"),
+        ("cb02050007000000404b4c0000000000057273752d3103782d30f40100000cfeffff983a0000"),
     ),
-    # one point, negative header time, and an authentication trailer (scheme 1, 4 bytes)
+    # one point, negative header time, an authentication trailer (scheme 1, 4 bytes), and
+    # no declared limits (five zero bytes)
     "fp-auth": (
         FuturePath(
             Header("car_c", 0, -1_500_000, Flags.AUTH, bytes.fromhex("01deadbeef")),
@@ -113,8 +121,9 @@ VECTORS: dict[str, tuple[Message, str]] = {
             _a((0.0, 0.0, -1.5)),
         ),
         (
-            "cb01010100000000a01ce9ffffffffff056361725f6300000000000000000000"
-            "4985b004ff00020100000000000000000000000000000104deadbeef"
+            "cb02010100000000a01ce9ffffffffff056361725f6300000000000000000000"
+            "4985b004ff000000000000020100000000000000000000000000000104deadbe"
+            "ef"
         ),
     ),
 }
@@ -123,7 +132,7 @@ VECTORS: dict[str, tuple[Message, str]] = {
 
 def assert_same(a: Message, b: Message) -> None:
     """``a`` and ``b`` are the same message, exactly (arrays included)."""
-    assert_close(a, b, position=0.0, time=0.0, speed=0.0, angle=0.0)
+    assert_close(a, b, position=0.0, time=0.0, speed=0.0, angle=0.0, accel=0.0)
 
 
 def assert_close(
@@ -134,8 +143,10 @@ def assert_close(
     time: float = 0.0005 + 1e-6,
     speed: float = 0.005 + 1e-9,
     angle: float = 0.5e-4 + 1e-9,
+    accel: float = 0.05 + 1e-9,
 ) -> None:
-    """``b`` is ``a`` within the wire resolution (defaults: 0.5 cm, 0.5 ms, 0.5 cm/s, 0.5e-4 rad).
+    """``b`` is ``a`` within the wire resolution (defaults: 0.5 cm, 0.5 ms, 0.5 cm/s, 0.5e-4 rad,
+    0.05 m/s² for declared accelerations).
 
     Headings are compared modulo 2 pi; exact comparison (all tolerances 0)
     compares them as numbers.
@@ -153,6 +164,7 @@ def assert_close(
         assert abs(a.length - b.length) <= position
         assert abs(a.width - b.width) <= position
         assert a.mode is b.mode
+        _assert_limits(a.limits, b.limits, speed, accel)
         _assert_points(a.points, b.points, position, time)
     elif isinstance(a, CoordinatedPath):
         assert isinstance(b, CoordinatedPath)
@@ -167,6 +179,17 @@ def assert_close(
         assert abs(a.radius - b.radius) <= position
     else:
         assert a == b
+
+
+def _assert_limits(
+    a: VehicleLimits | None, b: VehicleLimits | None, speed: float, accel: float
+) -> None:
+    if a is None or b is None:
+        assert a is b
+        return
+    assert abs(a.v_max - b.v_max) <= speed
+    for name in ("accel", "decel", "lat_accel"):
+        assert abs(getattr(a, name) - getattr(b, name)) <= accel, name
 
 
 def _assert_points(a: FloatArray, b: FloatArray, position: float, time: float) -> None:

@@ -83,7 +83,7 @@ def b_at(seconds_to_cross: float, v: float = VMAX) -> tuple[float, float]:
 
 
 def test_beacon_headers_and_deadlines() -> None:
-    core = RsuCore(config(coverage_m=120.0))
+    core = RsuCore(config(coverage_m=120.0), listen_s=0.0)
     assert core.next_deadline() == 0.0  # the first beacon is due at once
     out = core.tick(0.0)
     assert len(out) == 1 and out[0].vehicle is None
@@ -100,7 +100,7 @@ def test_beacon_headers_and_deadlines() -> None:
 
 
 def test_free_approaching_car_gets_c_fast() -> None:
-    core = RsuCore(config())
+    core = RsuCore(config(), listen_s=0.0)
     out = core.on_message(0.0, fp("A", a_at(6.0), EAST, VMAX, 0.0))
     assert kinds(out) == [("A", "ModeCommand", Mode.C_FAST), ("A", "CoordinatedPath", Mode.C_FAST)]
     cmd, cp = out[0].message, out[1].message
@@ -114,7 +114,7 @@ def test_free_approaching_car_gets_c_fast() -> None:
 
 def test_car_heading_for_the_zone_beyond_t_free_is_approaching() -> None:
     """Its path ends short of the zone (enters at 10.3 s) but closer to it: approaching."""
-    core = RsuCore(config())
+    core = RsuCore(config(), listen_s=0.0)
     out = core.on_message(0.0, fp("A", a_at(10.7), EAST, VMAX, 0.0))
     assert kinds(out)[0] == ("A", "ModeCommand", Mode.C_FAST)
     assert core.mode_of("A") == Mode.C_FAST and "A" in core.table
@@ -122,7 +122,7 @@ def test_car_heading_for_the_zone_beyond_t_free_is_approaching() -> None:
 
 def test_car_fallen_back_to_auto_is_taken_back() -> None:
     """Soft state: a C_FAST car whose future path says AUTO (timed out) is initiated again."""
-    core = RsuCore(config())
+    core = RsuCore(config(), listen_s=0.0)
     core.on_message(0.0, fp("A", a_at(6.0), EAST, VMAX, 0.0))
     core.on_message(0.1, fp("A", a_at(5.9), EAST, VMAX, 0.1, mode=Mode.C_FAST))  # acknowledged
     assert core.pending("A") is None
@@ -133,7 +133,7 @@ def test_car_fallen_back_to_auto_is_taken_back() -> None:
 
 def test_conflicting_sender_slows_when_neither_is_committed() -> None:
     """Both AUTO: the path already in the table keeps its way; the sender slows."""
-    core = RsuCore(config())
+    core = RsuCore(config(), listen_s=0.0)
     # A crawls inside the zone (not approaching: no C_FAST), through the crossing at 2.75 s
     assert core.on_message(0.0, fp("A", (-1.0, -1.75), EAST, 1.0, 0.0)) == []
     assert core.mode_of("A") == Mode.AUTO
@@ -157,7 +157,7 @@ def test_conflicting_sender_slows_when_neither_is_committed() -> None:
 
 
 def test_auto_car_conflicting_with_a_c_fast_car_slows() -> None:
-    core = RsuCore(config())
+    core = RsuCore(config(), listen_s=0.0)
     core.on_message(0.0, fp("A", a_at(4.0), EAST, VMAX, 0.0))
     assert core.mode_of("A") == Mode.C_FAST
     out = core.on_message(0.0, fp("B", b_at(4.5), NORTH, VMAX, 0.0))
@@ -166,7 +166,7 @@ def test_auto_car_conflicting_with_a_c_fast_car_slows() -> None:
 
 
 def test_c_fast_autonomous_path_puts_the_conflicting_auto_car_in_c_slow() -> None:
-    core = RsuCore(config())
+    core = RsuCore(config(), listen_s=0.0)
     # A at the crossing at 8.0 s: C_FAST. B 0.5 s later: conflict, but not within 5 s yet.
     assert kinds(core.on_message(0.0, fp("A", a_at(8.0), EAST, VMAX, 0.0)))[0][2] == Mode.C_FAST
     core.on_message(3.0, fp("A", a_at(5.0), EAST, VMAX, 3.0, Mode.C_FAST, seq=2))  # alive, ack
@@ -198,7 +198,7 @@ def test_c_fast_autonomous_path_puts_the_conflicting_auto_car_in_c_slow() -> Non
 def test_two_c_fast_cars_the_later_arriver_yields(
     sender: str, a_cross: float, b_cross: float
 ) -> None:
-    core = RsuCore(config())
+    core = RsuCore(config(), listen_s=0.0)
     # Both C_FAST first, 2 s apart (clear): A at the crossing at 8 s, B at 10 s
     core.on_message(0.0, fp("A", a_at(8.0), EAST, VMAX, 0.0))
     core.on_message(0.0, fp("B", b_at(10.0), NORTH, VMAX, 0.0))
@@ -233,7 +233,7 @@ def grid_path(
 
 
 def test_two_c_fast_cars_with_the_same_zone_entry_the_larger_id_yields() -> None:
-    core = RsuCore(config())
+    core = RsuCore(config(), listen_s=0.0)
     core.on_message(0.0, grid_path("A", a_at(8.0), EAST, 0.0, Mode.AUTO, FuturePath))
     core.on_message(0.0, fp("B", b_at(10.0), NORTH, VMAX, 0.0))
     assert core.modes() == {"A": Mode.C_FAST, "B": Mode.C_FAST}
@@ -253,7 +253,7 @@ def test_two_c_fast_cars_with_the_same_zone_entry_the_larger_id_yields() -> None
 
 
 def test_coordinated_car_leaving_is_terminated_auto_car_leaving_gets_nothing() -> None:
-    core = RsuCore(config())
+    core = RsuCore(config(), listen_s=0.0)
     core.on_message(0.0, fp("A", a_at(4.0), EAST, VMAX, 0.0))
     core.on_message(0.1, fp("A", a_at(3.9), EAST, VMAX, 0.1, Mode.C_FAST, seq=2))
     assert core.mode_of("A") == Mode.C_FAST and core.pending("A") is None
@@ -275,7 +275,7 @@ def test_coordinated_car_leaving_is_terminated_auto_car_leaving_gets_nothing() -
 
 
 def test_c_slow_car_on_autonomous_paths_stays_then_is_released() -> None:
-    core = RsuCore(config())
+    core = RsuCore(config(), listen_s=0.0)
     core.on_message(0.0, fp("A", (-1.0, -1.75), EAST, 1.0, 0.0))  # crawling in the zone
     core.on_message(0.0, fp("B", b_at(4.5), NORTH, VMAX, 0.0))
     assert core.mode_of("B") == Mode.C_SLOW
@@ -293,7 +293,7 @@ def test_c_slow_car_on_autonomous_paths_stays_then_is_released() -> None:
 
 def test_c_slow_car_released_to_auto_when_not_approaching() -> None:
     cfg = config()
-    core = RsuCore(cfg)
+    core = RsuCore(cfg, listen_s=0.0)
     # B will conflict with A at the crossing; B's path reaches the zone beyond T_free? No:
     # B is stopped close to the zone (so its own path never enters it: not approaching).
     core.on_message(0.0, fp("A", (-1.0, -1.75), EAST, 1.0, 0.0))
@@ -312,7 +312,7 @@ def test_c_slow_car_released_to_auto_when_not_approaching() -> None:
 
 
 def test_commands_repeat_until_the_future_path_shows_the_mode() -> None:
-    core = RsuCore(config(command_repeat_s=0.1))
+    core = RsuCore(config(command_repeat_s=0.1), listen_s=0.0)
     core.on_message(0.0, fp("A", a_at(6.0), EAST, VMAX, 0.0))
     core.tick(0.0)  # beacon
     assert core.next_deadline() == pytest.approx(0.1)
@@ -335,7 +335,7 @@ def test_commands_repeat_until_the_future_path_shows_the_mode() -> None:
 
 
 def test_silent_car_is_forgotten_and_no_longer_commanded() -> None:
-    core = RsuCore(config())
+    core = RsuCore(config(), listen_s=0.0)
     core.on_message(0.0, fp("A", a_at(6.0), EAST, VMAX, 0.0))
     assert core.mode_of("A") == Mode.C_FAST
     assert core.next_deadline() == 0.0  # beacon not sent yet
@@ -357,7 +357,7 @@ def test_silent_car_is_forgotten_and_no_longer_commanded() -> None:
 
 
 def test_future_paths_keep_a_coordinated_car_alive() -> None:
-    core = RsuCore(config())
+    core = RsuCore(config(), listen_s=0.0)
     core.on_message(0.0, fp("A", a_at(6.0), EAST, VMAX, 0.0))
     for k in range(1, 10):
         now = k / 10
@@ -370,7 +370,7 @@ def test_future_paths_keep_a_coordinated_car_alive() -> None:
 
 
 def test_ignored_inputs_are_counted_and_never_raise() -> None:
-    core = RsuCore(config())
+    core = RsuCore(config(), listen_s=0.0)
     core.on_message(0.0, fp("A", a_at(6.0), EAST, VMAX, 0.0))
     snapshot = core.table.get("A")
     cases: list[tuple[object, str | None, str]] = [
@@ -446,7 +446,7 @@ def hostile(problem: str) -> FuturePath:
     ],
 )
 def test_a_hostile_path_is_counted_and_dropped(problem: str) -> None:
-    core = RsuCore(config())
+    core = RsuCore(config(), listen_s=0.0)
     core.on_message(0.0, fp("A", a_at(6.0), EAST, VMAX, 0.0))
     before = dict(core.counters)
     assert core.on_message(0.1, hostile(problem)) == []
@@ -463,7 +463,7 @@ def test_a_hostile_path_is_counted_and_dropped(problem: str) -> None:
 def test_a_bug_in_the_decision_code_is_not_swallowed(
     monkeypatch: pytest.MonkeyPatch, error: Exception
 ) -> None:
-    core = RsuCore(config())
+    core = RsuCore(config(), listen_s=0.0)
 
     def broken(*args: object) -> list[Outgoing]:
         raise error
@@ -477,7 +477,7 @@ def test_a_bug_in_the_decision_code_is_not_swallowed(
 
 
 def test_coordinated_paths_are_thinned_to_max_points() -> None:
-    core = RsuCore(config(max_points=30))
+    core = RsuCore(config(max_points=30), listen_s=0.0)
     core.on_message(0.0, fp("A", (-1.0, -1.75), EAST, 1.0, 0.0))
     out = core.on_message(0.0, fp("B", b_at(4.5), NORTH, VMAX, 0.0))
     cp = out[1].message
@@ -491,7 +491,7 @@ def test_coordinated_paths_are_thinned_to_max_points() -> None:
 
 
 def test_forget() -> None:
-    core = RsuCore(config())
+    core = RsuCore(config(), listen_s=0.0)
     core.on_message(0.0, fp("A", a_at(6.0), EAST, VMAX, 0.0))
     assert core.forget("A") and not core.forget("A")
     assert "A" not in core.table and core.pending("A") is None
@@ -582,7 +582,7 @@ def crossing(
 ) -> tuple[RsuCore, dict[str, SimCar], list[Change]]:
     """A (east) and B (north) at V_max, B 0.5 s behind A at the crossing point."""
     rng = np.random.default_rng(seed)
-    core = RsuCore(config(policy=policy))
+    core = RsuCore(config(policy=policy), listen_s=0.0)
     a = SimCar("A", (1.75 - 7.0 * VMAX, -1.75), EAST, VMAX)
     b = SimCar("B", (1.75, -1.75 - 7.5 * VMAX), NORTH, VMAX)
     cars = {"A": a, "B": b}
@@ -670,3 +670,60 @@ def test_full_crossing_survives_message_loss(policy: Policy) -> None:
     assert (second, Mode.C_SLOW) in [(v, m) for _, v, m, _, _ in changes]
     assert zone_times(cars[first])[0] < zone_times(cars[second])[0]
     assert core.counters["terminations"] >= 2 and core.counters["invalid"] == 0
+
+
+# -- a (re)started RSU: listening first, committed cars keep their order ---------------------
+
+
+def test_a_started_core_listens_one_expiry_before_commanding() -> None:
+    core = RsuCore(config())  # listen_s defaults to one reservation expiry (0.5 s)
+    assert core.listen_s == 0.5
+    assert [type(o.message).__name__ for o in core.tick(0.0)] == ["RsuBeacon"]
+    # A free, approaching car: heard and reserved, but not commanded while listening
+    assert core.on_message(0.2, fp("A", a_at(6.0), EAST, VMAX, 0.2)) == []
+    assert "A" in core.table and core.mode_of("A") == Mode.AUTO
+    assert core.counters["fp_listened"] == 1 and core.listening(0.4)
+    out = core.on_message(0.5, fp("A", a_at(5.7), EAST, VMAX, 0.5, seq=2))
+    assert kinds(out) == [("A", "ModeCommand", Mode.C_FAST), ("A", "CoordinatedPath", Mode.C_FAST)]
+
+
+def test_listening_lasts_while_a_car_still_claims_a_coordinated_mode() -> None:
+    core = RsuCore(config(), listen_s=0.5)
+    # B still shows the C_FAST an earlier incarnation of this RSU gave it
+    core.on_message(0.0, fp("B", b_at(6.0), NORTH, VMAX, 0.0, Mode.C_FAST))
+    assert core.on_message(0.6, fp("B", b_at(5.4), NORTH, VMAX, 0.6, Mode.C_FAST, seq=2)) == []
+    assert core.listening(0.7)
+    # it fell back to AUTO (no coordinated path for 0.3 s): now the RSU takes it
+    out = core.on_message(0.8, fp("B", b_at(5.2), NORTH, VMAX, 0.8, seq=3))
+    assert ("B", "ModeCommand", Mode.C_FAST) in kinds(out)
+    # at most one expiry longer, whatever cars claim
+    other = RsuCore(config(), listen_s=0.5)
+    other.on_message(0.0, fp("B", b_at(6.0), NORTH, VMAX, 0.0, Mode.C_FAST))
+    assert other.listening(0.9) and not other.listening(1.0)
+    with pytest.raises(ValueError, match="listen_s"):
+        RsuCore(config(), listen_s=-1.0)
+
+
+def test_no_car_is_promoted_ahead_of_a_committed_car_s_zone_occupancy() -> None:
+    """B drives up to the zone in AUTO, too close to stop (committed). A, slow and still able
+    to stop, is clear of B's path by the point-pair check, but the C_FAST plan it would get
+    puts its body in the zone within the headway of B's body: A is not given C_FAST, it
+    slows, and nobody re-orders B."""
+    core = RsuCore(config(), listen_s=0.2)
+    # B: front 5 m from the zone edge at 8 m/s (braking takes 16 m): committed
+    assert core.on_message(0.0, fp("B", (1.75, -3.5 - 5.0 - 2.25), NORTH, 8.0, 0.0)) == []
+    # A: front 6 m from the zone at 2 m/s (braking 1 m): its own path reaches the crossing
+    # 3.8 s after B's, but V_max from here would enter the zone as B's rear leaves it
+    out = core.on_message(0.3, fp("A", (-3.5 - 6.0 - 2.25, -1.75), EAST, 2.0, 0.3))
+    assert kinds(out)[0] == ("A", "ModeCommand", Mode.C_SLOW)
+    assert core.mode_of("A") == Mode.C_SLOW and core.mode_of("B") == Mode.AUTO
+    assert core.counters["order_kept"] == 1
+    assert not any(o.vehicle == "B" for o in out)
+
+
+def test_a_car_far_enough_from_a_committed_car_still_gets_c_fast() -> None:
+    core = RsuCore(config(), listen_s=0.2)
+    core.on_message(0.0, fp("A", (-10.75, -1.75), EAST, 5.0, 0.0))
+    out = core.on_message(0.3, fp("B", b_at(6.0), NORTH, VMAX, 0.3))  # 2.5 s after A's rear
+    assert kinds(out)[0] == ("B", "ModeCommand", Mode.C_FAST)
+    assert core.counters["order_kept"] == 0

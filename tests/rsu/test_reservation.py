@@ -9,7 +9,15 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from services.rsu.reservation import Conflict, ReservationTable
+from services.rsu.reservation import (
+    MAX_BODY_LENGTH_M,
+    MAX_BODY_WIDTH_M,
+    STANDARD_SHAPE,
+    Conflict,
+    ReservationTable,
+    body_growth,
+    oversize,
+)
 
 D = 2.8
 H = 1.0
@@ -142,35 +150,50 @@ _path = st.lists(_point, min_size=0, max_size=12).map(
 )
 
 
+# Body sizes: mostly standard cars (growth 0), buses, and sizes up to the wire's bounds
+# (beyond the growth cap), some exactly one or two cells of growth.
+_shape = st.one_of(
+    st.just(STANDARD_SHAPE),
+    st.just((12.0, 2.5)),
+    st.tuples(st.floats(0.01, 50.0), st.floats(0.01, 10.0)),
+    st.tuples(st.sampled_from([4.5 + 2 * D, 4.5 + 4 * D, 25.0]), st.just(1.8)),
+)
+
+
 @settings(max_examples=300, deadline=None)
 @given(
-    others=st.lists(_path, min_size=0, max_size=6),
+    others=st.lists(st.tuples(_path, _shape), min_size=0, max_size=6),
     query=_path,
+    query_shape=_shape,
     now=st.sampled_from([0.0, 0.5, 1.0, 2.25]),
     horizon=st.sampled_from([1.0, 2.5, 5.0, 10.0]),
     margins=st.sampled_from([(0.0, 0.0), (0.6, 0.2), (D / 2, H / 2), (3.0, 1.5)]),
 )
 def test_indexed_query_equals_brute_force(
-    others: list[np.ndarray],
+    others: list[tuple[np.ndarray, tuple[float, float]]],
     query: np.ndarray,
+    query_shape: tuple[float, float],
     now: float,
     horizon: float,
     margins: tuple[float, float],
 ) -> None:
     table = ReservationTable(D, H, 0.5)
-    for i, pts in enumerate(others):
-        table.update(f"v{i}", pts, now)
-    fast = table.conflicts("q", query, now, horizon, (), *margins)
-    slow = table.naive_conflicts("q", query, now, horizon, (), *margins)
+    for i, (pts, shape) in enumerate(others):
+        table.update(f"v{i}", pts, now, shape)
+    fast = table.conflicts("q", query, now, horizon, (), *margins, shape=query_shape)
+    slow = table.naive_conflicts("q", query, now, horizon, (), *margins, shape=query_shape)
     assert fast == slow
     if margins != (0.0, 0.0):
         return
-    first = table.first_conflict("q", query, now, horizon, (), prefer=[f"v{len(others) - 1}"])
+    first = table.first_conflict(
+        "q", query, now, horizon, (), [f"v{len(others) - 1}"], shape=query_shape
+    )
     assert (first is None) == (not fast)
     assert first is None or first in fast
     # and the brute force itself is right: recompute pair by pair, in plain Python
     expected: dict[str, bool] = {}
-    for i, pts in enumerate(others):
+    for i, (pts, shape) in enumerate(others):
+        d = D + body_growth(*query_shape) + body_growth(*shape)
         hit = False
         for qx, qy, qt in query.tolist():
             if not now <= qt <= now + horizon:
@@ -179,7 +202,7 @@ def test_indexed_query_equals_brute_force(
                 if not now <= ot <= now + horizon:
                     continue
                 dx, dy = qx - ox, qy - oy
-                if dx * dx + dy * dy <= D * D and abs(qt - ot) < H:
+                if dx * dx + dy * dy <= d * d and abs(qt - ot) < H:
                     hit = True
         expected[f"v{i}"] = hit
     assert {c.vehicle for c in slow} == {v for v, hit in expected.items() if hit}
@@ -210,3 +233,63 @@ def test_single_pair_near_the_margins(
     ddx, ddy = x - (x + dx), y - (y + dy)
     expect = ddx * ddx + ddy * ddy <= D * D and abs(t - (t + dt)) < H
     assert bool(fast) == expect
+
+
+def _passing(gap: float) -> tuple[np.ndarray, np.ndarray]:
+    """Two cars in opposing lanes whose centres pass ``gap`` [m] apart: A eastbound along
+    y = 0, B westbound along y = ``gap``, both at x = 0 at 5 s."""
+    a = line(-50.0, 0.0, 0.5, 0.0, 0.0, 201, 0.05)
+    b = line(50.0, gap, -0.5, 0.0, 0.0, 201, 0.05)
+    return a, b
+
+
+def test_the_margin_grows_with_the_cars_sizes() -> None:
+    """Centres passing 3.5 m apart: no conflict for two standard cars (the paper's 2.8 m),
+    a conflict when one of them is a 12 m x 2.5 m bus (the body reaches 3.7 m further)."""
+    a, b = _passing(3.5)
+    bus = (12.0, 2.5)
+    for shape_a, shape_b, expect in [
+        (STANDARD_SHAPE, STANDARD_SHAPE, []),
+        (bus, STANDARD_SHAPE, ["A"]),
+        (STANDARD_SHAPE, bus, ["A"]),
+        ((3.0, 1.5), (3.0, 1.5), []),  # smaller than standard: the paper's margin, no less
+    ]:
+        table = ReservationTable(D, H, 0.5)
+        table.update("A", a, 0.0, shape_a)
+        found = table.conflicts("B", b, 0.0, 10.0, shape=shape_b)
+        assert [c.vehicle for c in found] == expect, (shape_a, shape_b)
+        assert found == table.naive_conflicts("B", b, 0.0, 10.0, shape=shape_b)
+        # without a shape the query is its own entry's (here none: a standard car)
+        table.update("B", b, 0.0, shape_b)
+        assert [c.vehicle for c in table.conflicts("B", b, 0.0, 10.0)] == expect
+    # the bus's pair margin: 2.8 + 3.71 m
+    assert body_growth(*bus) == pytest.approx(
+        0.5 * math.hypot(12.0, 2.5) - 0.5 * math.hypot(4.5, 1.8)
+    )
+    assert 3.70 < body_growth(*bus) < 3.72
+    a, b = _passing(2.8 + body_growth(*bus) + 0.05)
+    table = ReservationTable(D, H, 0.5)
+    table.update("A", a, 0.0, bus)
+    assert table.conflicts("B", b, 0.0, 10.0, shape=STANDARD_SHAPE) == []
+
+
+def test_growth_is_capped_and_shapes_are_checked() -> None:
+    assert body_growth(*STANDARD_SHAPE) == 0.0
+    assert body_growth(1.0, 1.0) == 0.0
+    cap = body_growth(MAX_BODY_LENGTH_M, MAX_BODY_WIDTH_M)
+    assert 10.0 < cap < 10.3
+    assert body_growth(50.0, 10.0) == cap  # the wire's largest: no larger neighbourhood
+    assert oversize(50.0, 1.8) and oversize(4.5, 3.5) and not oversize(25.0, 3.0)
+    table = ReservationTable(D, H, 0.5)
+    for bad in [(math.nan, 1.8), (4.5, math.inf), (-1.0, 1.8)]:
+        with pytest.raises(ValueError):
+            table.update("A", line(0.0, 0.0, 1.0, 0.0, 0.0, 3, 0.1), 0.0, bad)
+    assert "A" not in table
+    # a hostile 50 m x 10 m "car" is entered in as many cells as a 25 m x 3 m one
+    pts = line(-50.0, 0.0, 1.0, 0.0, 0.0, 101, 0.1)
+    table.update("big", pts, 0.0, (50.0, 10.0))
+    table.update("cap", pts, 0.0, (MAX_BODY_LENGTH_M, MAX_BODY_WIDTH_M))
+    big, capped = table.get("big"), table.get("cap")
+    assert big is not None and capped is not None
+    assert big.keys.size == capped.keys.size
+    assert big.keys.size <= 9 * 9 * np.unique(table._cells(pts)[2]).size * 101

@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
 import pytest
 
-from protocol.messages import AutonomousPath, Header, Mode
+from protocol.messages import AutonomousPath, FloatArray, Header, Mode, VehicleLimits
 from services.model.types import Policy
 from services.rsu import paths, velocity
 from services.rsu.config import RsuConfig
@@ -251,11 +252,11 @@ def test_crossing_paper_stops_and_slot_delays_just_enough(v_b: float, gap: float
 
 def _meet(vm: VelocityManager, path: AutonomousPath, target: float) -> velocity.SpeedPlan | None:
     """The slot search's inner step: the fastest profile entering the zone at ``target``."""
-    tr = velocity._track(path, VMAX, 0.0, 10.0)
-    cap, entry = vm._fast_caps(tr, path.length)
+    tr = velocity._track(path, vm.limits_of(path), 0.0, 10.0)
+    cap, entry = vm._fast_caps(tr)
     assert entry is not None
     env = velocity._envelope(tr.d, cap, 2.0)
-    return vm._meet(tr, entry, env, cap, path.length, target)
+    return vm._meet(tr, entry, env, cap, target)
 
 
 def test_slot_stops_before_the_zone_when_the_wait_is_long() -> None:
@@ -300,3 +301,155 @@ def test_slot_without_conflict_is_the_fastest_path() -> None:
     plan = VelocityManager(config(Policy.SLOT)).plan("B", b, Mode.C_SLOW, 0.0, ReservationTable())
     assert plan.kind == "slot"
     np.testing.assert_allclose(plan.points[:, 2], b.points[:, 2], atol=1e-6)
+
+
+# -- each car's own limits, and curves ----------------------------------------------------------
+
+TRUCK = VehicleLimits(8.0, 1.0, 1.5, 1.2)
+
+
+def with_limits(path: AutonomousPath, limits: VehicleLimits | None) -> AutonomousPath:
+    return dataclasses.replace(path, limits=limits)
+
+
+def test_a_declared_top_speed_replaces_the_scenario_one() -> None:
+    path = straight((1.75, -41.75), math.pi / 2, 8.0, 0.0)
+    truck = with_limits(ap("B", path, 5.0, math.pi / 2), TRUCK)
+    for policy, mode in ((Policy.PAPER, Mode.C_FAST), (Policy.SLOT, Mode.C_SLOW)):
+        plan = VelocityManager(config(policy)).plan("B", truck, mode, 0.0, ReservationTable())
+        assert plan.speeds.max() <= TRUCK.v_max + 1e-9
+        seg = paths.segment_speeds(plan.points, 5.0)[1:]
+        assert seg[np.isfinite(seg)].max() <= TRUCK.v_max + 1e-9
+        # honest times: from 5 m/s at the truck's 1.0 m/s² (not the scenario's 1.5)
+        y = plan.points[:, 1]
+        s = y - y[0]
+        early = s < (TRUCK.v_max**2 - 25.0) / (2 * TRUCK.accel)  # still accelerating
+        t_acc = (-5.0 + np.sqrt(25.0 + 2 * TRUCK.accel * s)) / TRUCK.accel
+        np.testing.assert_allclose(plan.points[early, 2], t_acc[early], rtol=1e-6, atol=1e-6)
+        # and the zone entry it predicts follows: 3.5 m/s² more would have it 1 s+ early
+        entry = paths.zone_entry_time(plan.points, ZONE)
+        assert plan.entry_time == pytest.approx(entry)
+        d_acc = (TRUCK.v_max**2 - 25.0) / (2 * TRUCK.accel)
+        d_entry = -3.5 - y[0]
+        expected = (TRUCK.v_max - 5.0) / TRUCK.accel + (d_entry - d_acc) / TRUCK.v_max
+        assert entry == pytest.approx(expected, abs=0.05)
+
+
+def test_a_declared_braking_replaces_the_scenario_one() -> None:
+    path = car_b(10.0, 6.0)
+    plan = VelocityManager(config()).plan(
+        "B", with_limits(path, TRUCK), Mode.C_SLOW, 0.0, ReservationTable()
+    )
+    stop_s = 10.0**2 / (2 * TRUCK.decel)  # 33.3 m, not the scenario's 25 m
+    assert plan.points[:, 1].max() == pytest.approx(path.points[0, 1] + stop_s)
+    assert plan.points[-1, 2] >= 10.0 - 1e-9
+
+
+def test_undeclared_limits_are_the_configuration() -> None:
+    cfg = config()
+    vm = VelocityManager(cfg)
+    assert vm.limits_of(car_b(10.0, 6.0)) == VehicleLimits(
+        cfg.v_max_mps, cfg.accel_mps2, cfg.decel_comfort_mps2, cfg.lat_accel_mps2
+    )
+    assert vm.limits_of(with_limits(car_b(10.0, 6.0), TRUCK)) is TRUCK
+
+
+RADIUS = 6.0
+
+
+def turning_path(v: float = 10.0, step: float = 0.84) -> FloatArray:
+    """North on x = 1.75 up to y = -6, a right turn of radius 6 m, then east on y = 0;
+    timed at a constant ``v`` (its own planner ignores the curve: the RSU must not)."""
+    approach = 54.0
+    arc = RADIUS * math.pi / 2
+    s = np.arange(120) * step
+    x = np.empty_like(s)
+    y = np.empty_like(s)
+    on_in = s <= approach
+    x[on_in], y[on_in] = 1.75, -6.0 - approach + s[on_in]
+    on_arc = (s > approach) & (s <= approach + arc)
+    th = (s[on_arc] - approach) / RADIUS
+    x[on_arc] = 1.75 + RADIUS - RADIUS * np.cos(th)
+    y[on_arc] = -6.0 + RADIUS * np.sin(th)
+    out = s > approach + arc
+    x[out], y[out] = 1.75 + RADIUS + (s[out] - approach - arc), 0.0
+    return np.column_stack([x, y, s / v])  # exact: the test's curvature is the true one
+
+
+def menger_curvature(points: FloatArray) -> FloatArray:
+    """Curvature [1/m] at each inner point from it and its two neighbours (0 at the ends)."""
+    p = points[:, :2]
+    a = np.hypot(*(p[1:-1] - p[:-2]).T)
+    b = np.hypot(*(p[2:] - p[1:-1]).T)
+    c = np.hypot(*(p[2:] - p[:-2]).T)
+    u, w = p[1:-1] - p[:-2], p[2:] - p[:-2]
+    area2 = np.abs(u[:, 0] * w[:, 1] - u[:, 1] * w[:, 0])
+    k = np.zeros(p.shape[0])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        k[1:-1] = np.where(a * b * c > 0, 2.0 * area2 / (a * b * c), 0.0)
+    return k
+
+
+@pytest.mark.parametrize(
+    ("policy", "mode", "limits"),
+    [
+        (Policy.PAPER, Mode.C_FAST, None),
+        (Policy.PAPER, Mode.C_FAST, TRUCK),
+        (Policy.SLOT, Mode.C_SLOW, None),
+        (Policy.SLOT, Mode.C_SLOW, TRUCK),
+    ],
+)
+def test_speeds_in_a_curve_stay_under_the_lateral_limit(
+    policy: Policy, mode: Mode, limits: VehicleLimits | None
+) -> None:
+    pts = turning_path()
+    path = with_limits(ap("B", pts, 10.0, math.pi / 2), limits)
+    vm = VelocityManager(config(policy))
+    a_lat = vm.limits_of(path).lat_accel
+    plan = vm.plan("B", path, mode, 0.0, ReservationTable())
+    assert plan.kind in ("fast", "slot")
+    np.testing.assert_allclose(plan.points[:, :2], pts[:, :2])  # the same positions
+    # the path's own curvature, from its points: speed <= sqrt(a_lat * r) everywhere
+    kappa = menger_curvature(plan.points)
+    assert kappa.max() == pytest.approx(1.0 / RADIUS, rel=0.05)  # the test sees the turn
+    cap = np.sqrt(a_lat / np.maximum(kappa, 1e-12))
+    assert np.all(plan.speeds <= cap + 1e-9)
+    # on the arc itself, against the true radius (target speeds and the timed profile)
+    x, y = plan.points[:, 0], plan.points[:, 1]
+    on_arc = (y > -6.0) & (x < 1.75 + RADIUS)
+    assert on_arc.sum() >= 5
+    limit = math.sqrt(a_lat * RADIUS)
+    assert np.all(plan.speeds[on_arc] <= limit + 1e-9)
+    seg = paths.segment_speeds(plan.points, 10.0)
+    both = on_arc[1:] & on_arc[:-1]
+    assert np.all(seg[1:][both] <= limit + 1e-9)
+    # and it is the curve that slows it, not a stop: well above a crawl there
+    assert plan.speeds[on_arc].min() >= 0.8 * limit
+    assert plan.speeds.max() <= vm.limits_of(path).v_max + 1e-9
+
+
+def test_curve_caps_ignore_the_wire_quantisation_on_straight_roads() -> None:
+    for heading in (0.0, 0.3, math.pi / 4, 2.0):
+        for step in (0.1, 0.5, 1.15):
+            s = np.arange(200, dtype=np.float64) * step
+            line = np.column_stack([s * math.cos(heading), s * math.sin(heading)])
+            xy = np.asarray(np.round(line, 2), dtype=np.float64)  # as on the wire
+            caps = paths.curve_caps(xy, paths.arc_length(np.column_stack([xy, s])), 2.0, VMAX)
+            assert np.all(caps == VMAX), (heading, step)
+
+
+@pytest.mark.parametrize("quantised", [False, True])
+@pytest.mark.parametrize("radius", [3.0, 6.0, 20.0])
+@pytest.mark.parametrize("step", [0.1, 0.5, 1.15])
+def test_curve_caps_of_a_circle_are_its_radius_or_slower(
+    radius: float, step: float, quantised: bool
+) -> None:
+    th = np.arange(0.0, math.pi, step / radius)
+    xy = np.column_stack([radius * np.cos(th), radius * np.sin(th)])
+    if quantised:
+        xy = np.round(xy, 2)  # as on the wire: the radius the points describe wobbles
+    s = paths.arc_length(np.column_stack([xy, th]))
+    caps = paths.curve_caps(xy, s, 2.0, VMAX)
+    true = math.sqrt(2.0 * radius)
+    assert np.all(caps <= true * (1.03 if quantised else 1 + 1e-9))
+    assert np.all(caps >= 0.9 * true)

@@ -241,3 +241,29 @@ def test_many_cars_run_in_reasonable_size() -> None:
     assert res.collisions == 0
     assert res.min_gap_m == pytest.approx(30.0 - 4.5)
     assert len(res.vehicles) == 12
+
+
+@pytest.mark.parametrize(
+    ("b_at_step_2", "collisions"),
+    [("missing", 1), ("apart", 2), ("overlapping", 1)],
+)
+def test_a_car_missing_at_a_step_neither_ends_nor_starts_an_overlap(
+    paper: Scenario, b_at_step_2: str, collisions: int
+) -> None:
+    """Issue 16: a step without B's truth measures nothing for the pair A-B: an overlap
+    across it stays one collision, and B is never compared at an older position."""
+    a_c = paper.vehicle_crossings("A")[0].center_s
+    b_c = paper.vehicle_crossings("B")[0].center_s
+    rec = MetricsRecorder(paper)
+    for k in range(5):
+        a = truth(paper, "A", k * DT, a_c, 0.0)
+        if k == 2 and b_at_step_2 == "missing":
+            rec.record(k * DT, [a])
+            continue
+        apart = k in (0, 4) or (k == 2 and b_at_step_2 == "apart")
+        b = truth(paper, "B", k * DT, b_c - (40.0 if apart else 0.0), 0.0)
+        rec.record(k * DT, [a, b])
+    res = rec.result()
+    assert res.collisions == collisions
+    assert res.collision_events[0].t == pytest.approx(DT)
+    assert res.min_gap_m == 0.0

@@ -97,7 +97,7 @@ def test_a_duplicate_replaces_the_first_and_is_counted(paper: Scenario) -> None:
     assert rows["A"][4] == pytest.approx(11.0)  # s of the second report
 
 
-def test_a_missing_car_is_filled_in_once_the_step_is_overdue(paper: Scenario) -> None:
+def test_a_missing_car_is_never_filled_in_it_is_a_gap(paper: Scenario) -> None:
     ts = steps(paper, speed=2.0)
     for k in range(4):
         ts.on_report(k * DT, report(paper, "A", k, s=10.0 + k))
@@ -110,23 +110,84 @@ def test_a_missing_car_is_filled_in_once_the_step_is_overdue(paper: Scenario) ->
     ts.advance(deadline - 0.01)
     assert ts.next_step == 3
     ts.advance(deadline)
-    assert ts.next_step == 4 and ts.gaps == 1
-    b_rows = [row for row in ts.trace_rows if row[1] == "B"]
-    assert b_rows[-1][0] == pytest.approx(3 * DT) and b_rows[-1][4] == pytest.approx(22.0)
-    # B's report for step 3 comes after all: late, counted, dropped
-    ts.on_report(0.3, report(paper, "B", 3))
+    assert ts.next_step == 4 and ts.gaps == 1 and ts.counters["gaps"] == 1
+    assert ts.truth_gaps() == {"A": 0, "B": 1} and ts.degraded
+    # step 3 has A only: nothing of B's step 2 is carried over to it
+    rows_3 = [row for row in ts.trace_rows if row[0] == pytest.approx(3 * DT)]
+    assert [row[1] for row in rows_3] == ["A"]
+    assert [k for k, rows in ts.steps() if len(rows) == 1] == [3]
+
+
+def test_a_late_report_is_kept_as_its_steps_truth(paper: Scenario) -> None:
+    ts = steps(paper, speed=2.0)
+    for k in range(4):
+        ts.on_report(k * DT, report(paper, "A", k, s=10.0 + k))
+        if k != 3:
+            ts.on_report(k * DT, report(paper, "B", k, s=20.0 + k))
+    ts.advance(3 * DT + TRUTH_WAIT_S * 2.0)
+    assert ts.degraded
+    # B's report for step 3 comes after its step was closed: late, and still its truth
+    ts.on_report(3.0, report(paper, "B", 3, s=23.0))
     assert ts.late == 1 and ts.next_step == 4
+    assert ts.truth_gaps() == {"A": 0, "B": 0} and not ts.degraded and ts.gaps == 0
+    rows = {row[1]: row for row in ts.trace_rows if row[0] == pytest.approx(3 * DT)}
+    assert rows["B"][4] == pytest.approx(23.0)
 
 
-def test_a_car_a_second_ahead_records_the_gap_without_waiting(paper: Scenario) -> None:
+def test_a_car_a_second_ahead_closes_the_gap_step_without_waiting(paper: Scenario) -> None:
     ts = steps(paper)
     ahead = round(1.0 / DT)
     for k in range(ahead + 1):
         ts.on_report(k * DT, report(paper, "A", k))
         if k != 0:  # B misses step 0
             ts.on_report(k * DT, report(paper, "B", k))
-    # at the last report A and B are one second past step 0: step 0 goes with B's latest
+    # at the last report A and B are one second past step 0: step 0 is closed without B
     assert ts.next_step == ahead + 1 and ts.gaps == 1
+    assert ts.truth_gaps() == {"A": 0, "B": 1}
+
+
+def _centre_s(sc: Scenario, vid: str) -> float:
+    return sc.vehicle_crossings(vid)[0].center_s
+
+
+def test_an_overlap_at_a_late_cars_step_is_a_collision_once_its_report_comes(
+    paper: Scenario,
+) -> None:
+    """Issue 16, step 508: A stands in the conflict zone; B crosses it in one step, and
+    its report of that very step is late. Filled in from B's step before (30 m back) the
+    run looked clean; now it is a gap (degraded, never clean) until the report arrives,
+    and then the overlap of that step is a collision."""
+    ts = steps(paper)
+    a_s, b_s = _centre_s(paper, "A"), _centre_s(paper, "B")
+    hit = 10
+    ahead = round(1.0 / DT)
+    for k in range(hit + ahead + 1):
+        ts.on_report(k * DT, report(paper, "A", k, s=a_s, v=0.0))
+        if k != hit:
+            ts.on_report(k * DT, report(paper, "B", k, s=b_s + 30.0 * (k - hit)))
+    assert ts.next_step == hit + ahead + 1  # A a second ahead: step `hit` closed without B
+    before = ts.metrics()
+    assert before.collisions == 0 and ts.truth_gaps()["B"] == 1 and ts.degraded
+    assert before.min_gap_m > 20.0  # every step measured is far apart: only the gap is not
+    ts.on_report((hit + ahead) * DT, report(paper, "B", hit, s=b_s))  # late, at last
+    after = ts.metrics()
+    assert ts.late == 1 and not ts.degraded
+    assert after.collisions == 1 and after.min_gap_m == 0.0
+    assert after.collision_events[0].t == pytest.approx(hit * DT)
+
+
+def test_after_close_only_late_reports_of_closed_steps_are_kept(paper: Scenario) -> None:
+    ts = steps(paper)
+    for k in range(3):
+        ts.on_report(k * DT, report(paper, "A", k))
+    ts.on_report(0.0, report(paper, "B", 0))
+    assert ts.next_step == 1
+    ts.close()
+    assert ts.next_deadline() is None
+    assert not ts.on_report(0.2, report(paper, "B", 1))  # never closed: after the end
+    ts.advance(100.0)
+    assert ts.next_step == 1 and [k for k, _rows in ts.steps()] == [0]
+    assert ts.truth_gaps() == {"A": 0, "B": 0}
 
 
 def test_peer_mistakes_are_counted_and_dropped(paper: Scenario) -> None:
@@ -250,8 +311,11 @@ def test_a_run_to_max_sim_s_then_the_final_stats(paper: Scenario) -> None:
         assert actions == Actions()
     assert actions == Actions(stop="max_sim_s (0.2 s) reached")
     assert core.truth.next_step == 5 and core.truth.last_t == pytest.approx(0.2)
-    core.on_truth(now, report(paper, "A", 1))  # after the end: not taken
-    assert core.truth.late == 0
+    assert not core.on_truth(now, report(paper, "A", 5))  # after the end: not taken
+    assert core.truth.late == 0 and core.truth.next_step == 5
+    # a late (here duplicate) report of a closed step is still that step's truth
+    assert core.on_truth(now, report(paper, "A", 1, s=10.5))
+    assert core.truth.late == 1 and core.truth.counters["duplicate"] == 1
     assert core.next_deadline() == pytest.approx(now + 3.0)
     core.on_stats("A", final=True)
     core.on_stats("B", final=True)

@@ -105,14 +105,35 @@ def test_car_appearing_from_behind_the_corner_makes_the_later_car_yield(paper: S
     assert plan_a.yielding_to == ()
 
 
-def test_yield_tie_goes_to_the_lower_id(paper: Scenario) -> None:
-    # exactly symmetric: same distance, same speed
+def test_yield_tie_goes_to_the_car_on_the_right(paper: Scenario) -> None:
+    # exactly symmetric: same distance, same speed; B (northbound) comes from A's right
     a = state(paper, "A", CENTER_S - 14.0, 3.0)
     b = state(paper, "B", CENTER_S - 14.0, 3.0)
     plan_a = planner(paper, "A").plan(0.0, a, [b], {})
     plan_b = planner(paper, "B").plan(0.0, b, [a], {})
-    assert plan_a.yielding_to == ()
-    assert plan_b.yielding_to == ("A",)
+    assert plan_a.yielding_to == ("B",)
+    assert plan_b.yielding_to == ()
+
+
+def test_the_car_at_its_stop_line_goes_before_a_faster_one(paper: Scenario) -> None:
+    # B creeps at its stop line; A is 12 m further out but fast: earliest zone entry would
+    # favour A, arrival at the stop line favours B (issue 17)
+    line = planner(paper, "B").crossings[0].s_stop
+    b = state(paper, "B", line - 0.5, 1.0)
+    a = state(paper, "A", line - 12.0, 7.0)
+    assert planner(paper, "A").plan(0.0, a, [b], {}).yielding_to == ("B",)
+    assert planner(paper, "B").plan(0.0, b, [a], {}).yielding_to == ()
+
+
+def test_opposing_car_is_never_yielded_to(paper: Scenario) -> None:
+    # a westbound car on y = +1.75 never shares a point with A on y = -1.75
+    p = planner(paper, "A")
+    a = state(paper, "A", CENTER_S - 14.0, 3.0)
+    w = TruthState("W", 0.0, 12.0, 1.75, math.pi, 3.0, 0.0, 0.0, 4.5, 1.8)
+    assert p.plan(0.0, a, [w], {}).yielding_to == ()
+    pts = np.array([[12.0 - d, 1.75, d / 3.0] for d in np.arange(0.0, 30.0, 1.0)])
+    fp = FuturePath(Header("W", 1, 0), 12.0, 1.75, 3.0, math.pi, 4.5, 1.8, Mode.AUTO, pts)
+    assert p.plan(0.0, a, [], {"W": fp}).yielding_to == ()
 
 
 def test_no_yield_when_the_other_car_is_well_past(paper: Scenario) -> None:
@@ -123,9 +144,10 @@ def test_no_yield_when_the_other_car_is_well_past(paper: Scenario) -> None:
 
 
 def test_future_path_makes_the_car_yield_before_it_can_see(paper: Scenario) -> None:
-    # A's future path says it crosses the zone in 3..4 s; B would arrive at the same time
-    pts = np.array([[x, -1.75, 0.0 + (x + 40.0) / 10.0] for x in np.arange(-40.0, 60.0, 1.0)])
-    fp = FuturePath(Header("A", 1, 0), -40.0, -1.75, 10.0, 0.0, 4.5, 1.8, Mode.AUTO, pts)
+    # A's future path says it crosses the zone in 2..3 s; B, 10 m further out, would be in
+    # it within the headway after A: A arrives first and B yields
+    pts = np.array([[x, -1.75, 0.0 + (x + 30.0) / 10.0] for x in np.arange(-30.0, 60.0, 1.0)])
+    fp = FuturePath(Header("A", 1, 0), -30.0, -1.75, 10.0, 0.0, 4.5, 1.8, Mode.AUTO, pts)
     b = state(paper, "B", CENTER_S - 40.0, 10.0)
     plan = planner(paper, "B").plan(0.0, b, [], {"A": fp})
     assert plan.yielding_to == ("A",)

@@ -386,6 +386,28 @@ def test_rsu_crash_fallback_and_restart_rebuild(lab_ready: None, tmp_path: Path)
     _gone(result)
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_an_rsu_restart_keeps_the_headway(lab_ready: None, tmp_path: Path, seed: int) -> None:
+    """Issue 16: ``lab run ... --crash rsu1@12 --restart rsu1@19`` gave min PET 0.04 s (seed 1):
+    the restarted RSU re-ordered cars already committed. It now listens first and keeps
+    every committed car's order."""
+    result = run_lab(
+        PAPER,
+        RunMode.RSU,
+        seed=seed,
+        speed=SPEED,
+        name=new_lab_name(),
+        run_dir=tmp_path,
+        crash_at=[TimedAction("rsu1", 12.0)],
+        restart_at=[TimedAction("rsu1", 19.0)],
+    )
+    assert result.error is None, result.error
+    assert result.collisions == 0 and result.all_finished
+    assert result.min_pet_s is not None and result.min_pet_s >= 1.0, result.min_pet_s
+    assert (result.actors or {})["rsu1"]["incarnations"] == 2
+    _gone(result)
+
+
 def _cli(*args: str, **kw: Any) -> subprocess.Popen[str]:
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     return subprocess.Popen(
