@@ -122,7 +122,10 @@ def test_trace_in_the_result_or_in_a_csv(tmp_path: Path) -> None:
     kept = simulate(PAPER, mode="fp-only", seed=1, trace=True)
     assert kept.trace_fields == list(TRACE_FIELDS)
     assert kept.trace is not None and {row[1] for row in kept.trace} == {"A", "B"}
-    assert len(kept.trace) >= 2 * kept.sim_s * 20  # both cars, every physics step (20 Hz)
+    for car in ("A", "B"):  # every physics step (20 Hz) while the car is in the world
+        ts = [float(row[0]) for row in kept.trace if row[1] == car]
+        assert len(ts) == round((ts[-1] - ts[0]) * 20) + 1 and ts[-1] - ts[0] > 30.0
+    assert max(float(row[0]) for row in kept.trace) == pytest.approx(kept.sim_s)
     csv_path = tmp_path / "t.csv"
     written = simulate(PAPER, mode="fp-only", seed=1, trace=csv_path)
     assert written.trace is None and "trace" not in written.to_dict()

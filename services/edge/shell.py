@@ -904,9 +904,11 @@ def load_daemon_scenario(path: str | Path) -> Scenario:
     """The scenario (a file, or a packaged name); ``ConfigError`` on field ``scenario``
     when it is unusable."""
     try:
-        return load_scenario(path)
+        scenario = load_scenario(path)
+        scenario.require_no_flows("a daemon")
     except ScenarioError as exc:
         raise ConfigError([("scenario", str(exc))]) from None
+    return scenario
 
 
 class DaemonCommand(Generic[C, D]):

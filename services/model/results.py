@@ -22,6 +22,17 @@ add ``lab``; in-process and lab runs add ``loss``. ``provenance`` says what
 produced the run: package version, git commit when known, the scenario's name,
 file and sha256, every channel parameter, the policy and its parameters.
 
+Traffic (in-process runs): each car gains ``insertion_delay_s`` (arrival to insertion at
+its route's start: SUMO's depart delay) and ``delay_s`` (finish time minus arrival minus
+the free-flow time of its route from rest to rest under its limits and the curve speed
+caps, so travel time beyond free flow plus the insertion wait; clipped at 0; None when
+the car did not finish), both absent when not measured; the run gains ``summary``
+(:class:`RunSummary`): ``vehicles_inserted`` (cars that entered the world),
+``vehicles_finished``, ``all_finished``, ``mean_delay_s`` and ``p95_delay_s`` (over the
+finished cars; None if none; p95 by linear interpolation), ``throughput_vph``
+(finished cars x 3600 / ``sim_s``), ``stops_per_vehicle`` (mean ``stops`` over the
+inserted cars; None if none). Definitions in ``services.sim.metrics``.
+
 Decisions where the issue was silent: ``delivery_ratio`` is not a fraction (a
 stream's duplicates, or counts lost with a crashed daemon, push it above 1; see
 ``services.edge.stats.network_section``), so it is only ``>= 0``; ``actors`` and
@@ -57,6 +68,7 @@ __all__ = [
     "Origin",
     "Provenance",
     "RunResult",
+    "RunSummary",
     "StreamSummary",
     "TruthCounts",
     "VehicleResult",
@@ -87,13 +99,38 @@ class VehicleResult(_Frozen):
     """One car's outcome: ``passing_time_s`` from 10 m after its start to 100 m after the
     intersection centre (None if it did not get there); ``first_through`` whether it
     crossed the conflict zone first; ``stops`` how often it came to a standstill on the
-    way; ``max_speed_mps`` its top speed; ``finished`` whether it reached its goal."""
+    way; ``max_speed_mps`` its top speed; ``finished`` whether it reached its goal;
+    ``delay_s`` and ``insertion_delay_s`` as in the module docstring (absent when None)."""
 
     passing_time_s: NonNegative | None
     first_through: bool
     stops: Count
     max_speed_mps: NonNegative | None
     finished: bool
+    delay_s: NonNegative | None = None
+    insertion_delay_s: NonNegative | None = None
+
+    @model_serializer(mode="wrap")
+    def _omit_unmeasured(
+        self, handler: SerializerFunctionWrapHandler, _info: SerializationInfo
+    ) -> dict[str, Any]:
+        data: dict[str, Any] = handler(self)
+        for name in ("delay_s", "insertion_delay_s"):
+            if data.get(name, 0) is None:
+                del data[name]
+        return data
+
+
+class RunSummary(_Frozen):
+    """Traffic figures of one run (module docstring: definitions)."""
+
+    vehicles_inserted: Count
+    vehicles_finished: Count
+    all_finished: bool
+    mean_delay_s: NonNegative | None
+    p95_delay_s: NonNegative | None
+    throughput_vph: NonNegative | None
+    stops_per_vehicle: NonNegative | None
 
 
 class StreamSummary(_Frozen):
@@ -236,6 +273,7 @@ _OPTIONAL: Final = frozenset(
         "rebuilt_from",
         "lab",
         "provenance",
+        "summary",
     }
 )
 """Sections written only when set (absent from the JSON when None)."""
@@ -303,6 +341,8 @@ class RunResult(_Frozen):
     lab: dict[str, Any] | None = None
     """The network lab's section (``services.supervise.lab.runner``)."""
     provenance: Provenance | None = None
+    summary: RunSummary | None = None
+    """Traffic figures (in-process runs)."""
 
     @model_serializer(mode="wrap")
     def _omit_absent_sections(

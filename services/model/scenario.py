@@ -12,6 +12,11 @@ per message, the step between consecutive path points) or the RSU core would ref
 (cross-field nonsense such as ``t_collision_s > t_free_s``): a scenario that loads
 never fails later with an ``EncodeError``.
 
+Demand comes as ``[[vehicles]]`` (one car each) and ``[[flows]]`` (a stream of cars on a
+route, SUMO-style): :meth:`Scenario.for_seed` draws a flow's arrivals from the run's seed
+and returns the scenario with every flow car as a vehicle ``<flow id>-<n>`` (n from 0)
+whose ``start_time_s`` is its arrival; every consumer then sees plain vehicles.
+
 The RSU's tuning knobs (``[rsu_params]``, per RSU ``[rsus.params]``) and the car's
 (``[vehicle_params]``) are part of the scenario, so every harness (``crosspath sim``,
 the daemons, the experiments) runs the same experiment from the same file.
@@ -23,12 +28,13 @@ geometric centre; a route's ``s`` is the arc length of the centre along the rout
 from __future__ import annotations
 
 import math
+import re
 import tomllib
 import zlib
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Any, TypeVar
+from typing import Annotated, Any, Literal, TypeVar
 
 import numpy as np
 from pydantic import (
@@ -77,10 +83,12 @@ __all__ = [
     "DEFAULT_WIDTH_M",
     "LANE_MATCH_HEADING_RAD",
     "LANE_MATCH_LATERAL_M",
+    "MAX_FLOW_VEHICLES",
     "ApproachLane",
     "BuildingSpec",
     "Crossing",
     "DynamicsOverrides",
+    "FlowSpec",
     "IntersectionSpec",
     "LaneSpec",
     "MetricsSpec",
@@ -128,6 +136,16 @@ that speed must still fit the wire's ``MAX_SPEED_MPS`` [m/s]."""
 
 MIN_SIZE_M = 0.01
 """Smallest car length or width and RSU coverage: the wire's resolution, 1 cm [m]."""
+
+MAX_FLOW_VEHICLES = 5000
+"""Most cars one flow may be expected to make (``vehicles_per_hour`` x its duration):
+a larger flow is refused. A Poisson draw is cut at :data:`FLOW_VEHICLES_CAP` cars."""
+
+FLOW_VEHICLES_CAP = 9999
+"""Hard cap on the cars one flow draws (4 digits of ``n`` in ``<flow id>-<n>``)."""
+
+FLOW_ID_MAX_LEN = MAX_ID_LEN - 1 - len(str(FLOW_VEHICLES_CAP - 1))
+"""A flow id leaves room for ``-<n>``: its cars' ids must still be valid ids (27 chars)."""
 
 FUTURE_PATH_POINTS_MAX = min(max_points(Kind.FUTURE_PATH), max_points(Kind.AUTONOMOUS_PATH))
 """Most points a car can put in one future (or autonomous) path datagram."""
@@ -420,6 +438,37 @@ class VehicleSpec(_Model):
     params: VehicleParamsOverrides | None = None
 
 
+class FlowSpec(_Model):
+    """``[[flows]]``: a stream of cars on one route from ``begin_s`` to ``end_s`` [run s];
+    ``arrivals`` "poisson" (exponential gaps) or "uniform" (one every 3600 /
+    ``vehicles_per_hour`` s from ``begin_s``). Its cars are ``<id>-<n>``."""
+
+    id: Annotated[Id, StringConstraints(max_length=FLOW_ID_MAX_LEN)]
+    route: Id
+    vehicles_per_hour: PosF
+    begin_s: NonNegF = 0.0
+    end_s: PosF
+    arrivals: Literal["poisson", "uniform"] = "poisson"
+    length_m: Annotated[PosF, AfterValidator(_wire_size("car lengths", MAX_LENGTH_M))] = (
+        DEFAULT_LENGTH_M
+    )
+    width_m: Annotated[PosF, AfterValidator(_wire_size("car widths", MAX_WIDTH_M))] = (
+        DEFAULT_WIDTH_M
+    )
+    dynamics: DynamicsOverrides | None = None
+
+    @model_validator(mode="after")
+    def _window(self) -> FlowSpec:
+        if self.end_s <= self.begin_s:
+            raise ValueError(f"end_s ({self.end_s} s) must be after begin_s ({self.begin_s} s)")
+        return self
+
+    @property
+    def expected_vehicles(self) -> float:
+        """Cars the flow makes on average: rate x duration."""
+        return self.vehicles_per_hour * (self.end_s - self.begin_s) / 3600.0
+
+
 class RsuParams(_Model):
     """``[rsu_params]``: the RSU core's knobs beyond the paper's ``[params]`` (defaults are
     the ones the results in the README were made with; ``services.rsu.velocity`` and
@@ -483,7 +532,8 @@ class ScenarioFile(_Model):
     intersections: list[IntersectionSpec] = []
     buildings: list[BuildingSpec] = []
     routes: Annotated[list[RouteSpec], Field(min_length=1)]
-    vehicles: Annotated[list[VehicleSpec], Field(min_length=1)]
+    vehicles: list[VehicleSpec] = []
+    flows: list[FlowSpec] = []
     rsus: list[RsuSpec] = []
     rsu_params: RsuParams = RsuParams()
     vehicle_params: VehicleParams = VehicleParams()
@@ -541,6 +591,11 @@ def _wrap_validation(err: ValidationError, source: str) -> ScenarioError:
         msg = e["msg"]
         if e["type"] == "extra_forbidden":
             msg = "unknown key"
+        elif e["type"] == "string_too_long" and e["loc"][:1] == ("flows",):
+            msg = (
+                f"{e['input']!r} is too long for a flow id: at most {FLOW_ID_MAX_LEN} "
+                "characters, so that its cars' ids <id>-<n> stay valid ids"
+            )
         elif e["type"] == "string_pattern_mismatch":
             msg = f"{e['input']!r} is not a valid id: use 1 to {MAX_ID_LEN} of A-Z a-z 0-9 _ -"
         elif msg.startswith("Value error, "):
@@ -593,9 +648,12 @@ class Scenario:
             ("buildings", sp.buildings),
             ("routes", sp.routes),
             ("vehicles", sp.vehicles),
+            ("flows", sp.flows),
             ("rsus", sp.rsus),
         ):
             self._unique(kind, [it.id for it in items])
+        if not sp.vehicles and not sp.flows:
+            raise self._err("vehicles", "a scenario needs at least one [[vehicles]] or [[flows]]")
         if sp.params.t_collision_s > sp.params.t_free_s:
             raise self._err(
                 "params.t_collision_s",
@@ -650,12 +708,16 @@ class Scenario:
                 limits = limits_from_params(sp.params, v.dynamics)
             except ValueError as exc:
                 raise self._err(f"vehicles[{i}].dynamics", str(exc)) from None
-            self._check_path_step(i, v, limits)
+            own = v.dynamics is not None and v.dynamics.v_max_mps is not None
+            self._check_path_step(
+                f"vehicles[{i}].dynamics.v_max_mps" if own else None, f"car {v.id!r}", limits
+            )
             rv = v.model_copy(update={"goal_m": min(goal, line.length)})
             resolved.append(rv)
             self._vehicles[v.id] = rv
             self._vehicle_params[v.id] = _merged(sp.vehicle_params, v.params)
         self.vehicles: tuple[VehicleSpec, ...] = tuple(resolved)
+        self._check_flows()
         self._pack_lanes()
 
         for i, r in enumerate(sp.rsus):
@@ -670,23 +732,112 @@ class Scenario:
                 _merged(sp.rsu_params, r.params), f"rsus[{i}]", r.params
             )
 
+    def _check_flows(self) -> None:
+        """Each flow's route exists, its demand is bounded, its limits are valid and fit
+        the wire, and no other car or RSU id looks like one of its cars' ids."""
+        sp = self.spec
+        others = [v.id for v in sp.vehicles] + [r.id for r in sp.rsus]
+        for i, f in enumerate(sp.flows):
+            if f.route not in self._routes:
+                known = ", ".join(sorted(self._routes))
+                raise self._err(f"flows[{i}].route", f"unknown route {f.route!r} (known: {known})")
+            if f.expected_vehicles > MAX_FLOW_VEHICLES:
+                raise self._err(
+                    f"flows[{i}].vehicles_per_hour",
+                    f"{f.expected_vehicles:.0f} cars expected over {f.end_s - f.begin_s:g} s; "
+                    f"a flow makes at most {MAX_FLOW_VEHICLES}",
+                )
+            try:
+                limits = limits_from_params(sp.params, f.dynamics)
+            except ValueError as exc:
+                raise self._err(f"flows[{i}].dynamics", str(exc)) from None
+            own = f.dynamics is not None and f.dynamics.v_max_mps is not None
+            self._check_path_step(
+                f"flows[{i}].dynamics.v_max_mps" if own else None, f"flow {f.id!r}", limits
+            )
+            pattern = re.compile(rf"{re.escape(f.id)}-[0-9]+")
+            clash = [x for x in others if pattern.fullmatch(x)]
+            if clash:
+                raise self._err(
+                    f"flows[{i}].id",
+                    f"its cars are named {f.id}-<n>, and {clash[0]!r} is already a vehicle or RSU",
+                )
+
+    def _flow_arrivals(self, f: FlowSpec, seed: int) -> list[float]:
+        """Arrival times [run s] of one flow's cars in ``[begin_s, end_s)``."""
+        if f.arrivals == "uniform":
+            period = 3600.0 / f.vehicles_per_hour
+            n = min(math.ceil((f.end_s - f.begin_s) / period - 1e-9), FLOW_VEHICLES_CAP)
+            return [f.begin_s + k * period for k in range(n)]
+        rng = np.random.default_rng([seed, zlib.crc32(f"flow:{f.id}".encode())])
+        mean_gap = 3600.0 / f.vehicles_per_hour
+        out: list[float] = []
+        t = f.begin_s + float(rng.exponential(mean_gap))
+        while t < f.end_s and len(out) < FLOW_VEHICLES_CAP:
+            out.append(t)
+            t += float(rng.exponential(mean_gap))
+        return out
+
+    def draw_arrivals(self, seed: int) -> dict[str, list[float]]:
+        """Per flow, its cars' arrival times [run s] for one trial, increasing. Poisson
+        gaps come from numpy ``default_rng([seed, crc32("flow:" + id)])``: a flow's
+        arrivals depend only on the seed and its own id; uniform arrivals on neither."""
+        if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+            raise ValueError(f"seed must be an int >= 0, got {seed!r}")
+        return {f.id: self._flow_arrivals(f, seed) for f in self.spec.flows}
+
+    def require_no_flows(self, harness: str) -> None:
+        """Refuse ``[[flows]]`` where ``harness`` cannot run them yet: the daemons and the
+        lab start one process per car named in ``[[vehicles]]`` (flows run in-process)."""
+        if self.spec.flows:
+            raise ScenarioError(
+                "flows",
+                f"{harness} runs only [[vehicles]]; flows run in the in-process harness "
+                "(crosspath sim, services.api.simulate)",
+                self.source,
+            )
+
+    def for_seed(self, seed: int) -> Scenario:
+        """The scenario one trial runs: every flow's cars drawn (:meth:`draw_arrivals`) and
+        appended as vehicles ``<flow id>-<n>`` after the ``[[vehicles]]``, each starting
+        at its arrival at the route's start; no flows left. Itself without flows."""
+        if not self.spec.flows:
+            return self
+        cars = list(self.spec.vehicles)
+        flows = {f.id: f for f in self.spec.flows}
+        for fid, times in self.draw_arrivals(seed).items():
+            f = flows[fid]
+            cars.extend(
+                VehicleSpec(
+                    id=f"{fid}-{n}",
+                    route=f.route,
+                    start_time_s=t,
+                    length_m=f.length_m,
+                    width_m=f.width_m,
+                    dynamics=f.dynamics,
+                )
+                for n, t in enumerate(times)
+            )
+        if not cars:
+            raise self._err("flows", f"seed {seed} draws no car from any flow, and no [[vehicles]]")
+        return Scenario(self.spec.model_copy(update={"vehicles": cars, "flows": []}), self.source)
+
     def _point_step_m(self, limits: Limits) -> float:
         """Distance between consecutive future-path points of a car at its speed cap [m]."""
         p = self.spec.params
         return limits.v_max * SPEED_CAP_FACTOR * p.t_free_s / (p.future_path_points - 1)
 
-    def _check_path_step(self, i: int, v: VehicleSpec, limits: Limits) -> None:
+    def _check_path_step(self, own_path: str | None, who: str, limits: Limits) -> None:
         """A car's future path, and a coordinated path thinned from it, must fit the wire's
-        largest step between consecutive points."""
+        largest step between consecutive points. ``own_path`` names the car's own
+        ``v_max_mps`` when it sets one (else the scenario's knob is blamed)."""
         p = self.spec.params
         step = self._point_step_m(limits)
         if step * PATH_THINNING <= MAX_STEP_M:
             return
-        own = v.dynamics is not None and v.dynamics.v_max_mps is not None
-        path = f"vehicles[{i}].dynamics.v_max_mps" if own else "params.future_path_points"
         raise self._err(
-            path,
-            f"car {v.id!r} at {limits.v_max * SPEED_CAP_FACTOR:.1f} m/s puts its future-path "
+            own_path or "params.future_path_points",
+            f"{who} at {limits.v_max * SPEED_CAP_FACTOR:.1f} m/s puts its future-path "
             f"points {step:.1f} m apart ({p.t_free_s} s over {p.future_path_points - 1} "
             f"steps); thinned by the RSU that is {step * PATH_THINNING:.1f} m, and the wire "
             f"carries at most {MAX_STEP_M} m between points: raise future_path_points or "
@@ -717,7 +868,9 @@ class Scenario:
                 f"{rp.hold_step_s} s must be below 2 x params.headway_s ({2.0 * p.headway_s} s): "
                 "a crossing point could fall between two hold points unseen",
             )
-        steps = [self._point_step_m(self.limits(v.id)) for v in self.vehicles]
+        steps = [self._point_step_m(self.limits(v.id)) for v in self.vehicles] + [
+            self._point_step_m(limits_from_params(p, f.dynamics)) for f in self.spec.flows
+        ]
         crawl_s = max(steps, default=0.0) * PATH_THINNING / rp.slot_min_speed_mps
         if crawl_s > MAX_STEP_S:
             raise self._err(

@@ -13,6 +13,17 @@ version, git commit and scenario digest from an ``Origin`` the caller found
 :func:`write_trace_csv`. The options refuse what they cannot run:
 ``SimOptions(mode="rsu")`` is the rsu mode, ``SimOptions(mode="bogus")`` a
 ``ValueError`` naming the modes.
+
+Demand: the scenario's flows are drawn from the run's seed (``Scenario.for_seed``).
+A car exists in the world only between insertion and removal. It is inserted at its
+route's start once it has arrived (its start time) and the entry is clear
+(``services.sim.car.entry_clear``); until then it waits outside the network: it has
+no truth, is not sensed, sends nothing and is in no metrics pair (its radio listens,
+as a car approaching the network would), and the wait is its ``insertion_delay_s``.
+Waiting cars enter in arrival order (a blocked car holds back later ones at the same
+entry). A car standing at its goal (``services.sim.car.at_goal``) is removed after that
+step's metrics: no longer sensed, it stops sending and receiving; the RSU forgets it
+when its reservation expires. The run ends when every car has left, or at ``max_sim_s``.
 """
 
 from __future__ import annotations
@@ -36,10 +47,10 @@ from services.model.scenario import Scenario
 from services.model.types import Policy, RunMode, parse_mode, parse_policy
 from services.rsu.config import rsu_config
 from services.rsu.core import Outgoing, RsuCore
-from services.sim.car import CarBody, all_at_goal
+from services.sim.car import CarBody, at_goal, entry_clear
 from services.sim.membus import ChannelModel, MemoryChannel
 from services.sim.metrics import MetricsRecorder
-from services.sim.results import provenance, run_result
+from services.sim.results import provenance, run_result, run_summary
 from services.sim.sensors import perceive
 from services.vehicle.agent import VehicleAgent, vehicle_agent
 from services.vehicle.planner import Reason
@@ -135,10 +146,16 @@ class Simulation:
     on_step: Callable[[float, dict[str, TruthState]], None] | None = None
     origin: Origin = field(default_factory=Origin)
     """Version, commit and scenario digest for the result's provenance (found by the caller)."""
+    waiting: list[str] = field(init=False, default_factory=list)
+    """Cars not yet inserted, in arrival order."""
+    present: dict[str, None] = field(init=False, default_factory=dict)
+    """Cars in the world, in insertion order."""
+    left: set[str] = field(init=False, default_factory=set)
+    """Cars removed at their goal."""
 
     def __post_init__(self) -> None:
-        sc = self.scenario
         o = self.options
+        self.scenario = sc = self.scenario.for_seed(o.seed)
         starts = o.start_times if o.start_times is not None else sc.draw_start_times(o.seed)
         missing = [v.id for v in sc.vehicles if v.id not in starts]
         if missing:
@@ -156,6 +173,8 @@ class Simulation:
             raise ValueError(f"rsu_outages name no RSU of this {o.mode} run: {unknown}")
         self.channel = MemoryChannel(o.channel, seed=o.seed * 7919 + 17)
         self.metrics = MetricsRecorder(sc)
+        order = {v.id: k for k, v in enumerate(sc.vehicles)}
+        self.waiting = sorted(order, key=lambda vid: (self.bodies[vid].start_time, order[vid]))
 
     # ------------------------------------------------------------------ V2X
     def _send(self, now: float, key: str, message: Message, receivers: list[str]) -> None:
@@ -170,6 +189,8 @@ class Simulation:
             except (DecodeError, ValueError):
                 self.counters["malformed"] = self.counters.get("malformed", 0) + 1
                 continue
+            if d.receiver in self.left:
+                continue  # gone from the network
             if d.receiver in self.agents:
                 self.agents[d.receiver].on_message(now, message, parsed.rsu)
             elif d.receiver in self.rsus:
@@ -178,12 +199,45 @@ class Simulation:
 
     def _send_rsu(self, now: float, rsu_id: str, og: Outgoing) -> None:
         if og.vehicle is None:
-            self._send(now, keyexpr.rsu_beacon(rsu_id), og.message, list(self.agents))
-        elif og.vehicle in self.agents:
+            self._send(now, keyexpr.rsu_beacon(rsu_id), og.message, self._listeners())
+        elif og.vehicle in self.agents and og.vehicle not in self.left:
             self._send(now, keyexpr.rsu_command(rsu_id, og.vehicle), og.message, [og.vehicle])
 
+    def _listeners(self) -> list[str]:
+        """Cars whose radio is on: every car that has not left."""
+        return [v for v in self.agents if v not in self.left]
+
     def _fp_receivers(self, sender: str) -> list[str]:
-        return [v for v in self.agents if v != sender] + list(self.rsus)
+        return [v for v in self._listeners() if v != sender] + list(self.rsus)
+
+    # ------------------------------------------------------------------ world
+    def _insert(self, now: float) -> None:
+        """Insert, in arrival order, every car that has arrived and whose entry is clear."""
+        p = self.scenario.params
+        inside = [self.bodies[vid].truth(now) for vid in self.present]
+        still: list[str] = []
+        blocked = False
+        for vid in self.waiting:
+            body = self.bodies[vid]
+            if blocked or now + 1e-9 < body.start_time:
+                still.append(vid)
+                continue
+            entry = body.truth(now)
+            if entry_clear(entry, inside, p.headway_s, body.limits.decel_comfort):
+                self.present[vid] = None
+                inside.append(entry)
+                self.metrics.inserted(vid, body.start_time, now)
+            else:
+                still.append(vid)
+        self.waiting = still
+
+    def _remove(self, now: float, truths: dict[str, TruthState]) -> None:
+        """Remove every car standing at its goal (after this step's metrics)."""
+        for vid, t in truths.items():
+            if at_goal(self.scenario, t):
+                del self.present[vid]
+                self.left.add(vid)
+                log.debug("car %s left at %.2f s", vid, now)
 
     # ------------------------------------------------------------------ loop
     def run(self) -> RunResult:
@@ -201,13 +255,12 @@ class Simulation:
         details: dict[str, str] = {v: "" for v in self.agents}
         while True:
             now = step * dt
-            truths = {vid: b.truth(now) for vid, b in self.bodies.items()}
+            self._insert(now)
+            truths = {vid: self.bodies[vid].truth(now) for vid in self.present}
             self._deliver(now)
             if step % plan_every == 0:
-                for vid, agent in self.agents.items():
-                    body = self.bodies[vid]
-                    if now + 1e-9 < body.start_time:
-                        continue
+                for vid in self.present:
+                    agent = self.agents[vid]
                     ego = truths[vid]
                     others = [t for k, t in truths.items() if k != vid]
                     sensed = perceive(ego, others, sc.building_polygons, p.sensor_range_m)
@@ -226,7 +279,7 @@ class Simulation:
                 for rid, rsu in self.rsus.items():
                     for og in rsu.tick(now):
                         self._send_rsu(now, rid, og)
-            modes = {vid: a.mode.name for vid, a in self.agents.items()}
+            modes = {vid: self.agents[vid].mode.name for vid in self.present}
             self.metrics.record(now, list(truths.values()), modes, reasons)
             if o.trace:
                 for vid, t in truths.items():
@@ -248,9 +301,11 @@ class Simulation:
                 self.on_step(now, truths)
             if o.rsu_outages:
                 self._outages(now, dt)
-            if now >= max_t or all_at_goal(sc, truths.values()):
+            self._remove(now, truths)
+            if now >= max_t or not (self.present or self.waiting):
                 break
-            for vid, body in self.bodies.items():
+            for vid in self.present:
+                body = self.bodies[vid]
                 body.step(now, dt, self.agents[vid].command(body.state))
             step += 1
         wall = time.perf_counter() - wall0
@@ -260,8 +315,9 @@ class Simulation:
             latency_s=o.channel.latency_s,
             jitter_s=o.channel.jitter_s,
         )
+        metrics = self.metrics.result()
         return run_result(
-            self.metrics.result(),
+            metrics,
             mode=o.mode,
             policy=o.policy if o.mode is RunMode.RSU else None,
             seed=o.seed,
@@ -272,6 +328,7 @@ class Simulation:
             harness="in-process",
             provenance=provenance(sc, self.origin, channel, o.mode, o.policy),
             loss=o.channel.loss,
+            summary=run_summary(metrics, now),
         )
 
     def _outages(self, now: float, dt: float) -> None:

@@ -32,6 +32,16 @@ Definitions (times in s on the run's time base, distances in m):
   a stop within ``goal_tolerance_m`` of the goal (the final stop) is not counted.
 - **finished**: the car stood (speed < 0.1 m/s) within ``goal_tolerance_m`` of its
   goal at some step.
+- **insertion delay** (in-process harness, which calls :meth:`MetricsRecorder.inserted`):
+  time from the car's arrival (its start time) to its insertion at its route's start
+  (SUMO's depart delay); None for a car never inserted, and in daemon runs.
+- **free-flow time**: the least time to drive from the car's start offset to its goal
+  alone, from rest to rest, under its ``v_max``, ``accel``, ``decel_comfort`` and the
+  curve speed caps (``kinematics.curve_speed_cap``); actuator lag ignored
+  (:func:`free_flow_time_s`).
+- **delay**: finished time minus arrival minus the free-flow time, i.e. travel time
+  beyond free flow plus insertion wait; clipped at 0; None if not finished or never
+  inserted.
 """
 
 from __future__ import annotations
@@ -55,7 +65,7 @@ from services.model.geometry import (
     min_point_distance,
     rect_distances,
 )
-from services.model.kinematics import TruthState
+from services.model.kinematics import Limits, TruthState, curve_speed_cap
 from services.model.limits import STOP_ARM_ABOVE_MPS, STOP_COUNT_BELOW_MPS
 from services.model.scenario import SAMPLE_STEP_M, Scenario
 
@@ -65,7 +75,11 @@ __all__ = [
     "RunMetrics",
     "VehicleMetrics",
     "ZoneVisit",
+    "free_flow_time_s",
 ]
+
+FREE_FLOW_STEP_M = 0.5
+"""Grid step of the free-flow speed profile [m]."""
 
 SAME_ENTRY_M = 1.0
 """Two paths entering a zone closer than this (m) share the entry (following, no PET)."""
@@ -109,6 +123,11 @@ class VehicleMetrics:
     mode_time_s: Mapping[str, float]
     reason_time_s: Mapping[str, float]
     mode_changes: tuple[tuple[float, str], ...]
+    arrival_s: float | None = None
+    inserted_s: float | None = None
+    insertion_delay_s: float | None = None
+    free_flow_s: float | None = None
+    delay_s: float | None = None
 
     def as_dict(self) -> dict[str, Any]:
         return {
@@ -183,6 +202,8 @@ class _Track:
     mode_time: dict[str, float] = field(default_factory=dict)
     reason_time: dict[str, float] = field(default_factory=dict)
     mode_changes: list[tuple[float, str]] = field(default_factory=list)
+    arrival_s: float | None = None
+    inserted_s: float | None = None
 
 
 class MetricsRecorder:
@@ -232,6 +253,16 @@ class MetricsRecorder:
         self._pending_bound = math.inf
 
     # -- recording ------------------------------------------------------------------
+
+    def inserted(self, vehicle_id: str, arrival_s: float, t: float) -> None:
+        """Car ``vehicle_id``, arrived at ``arrival_s``, entered the world at ``t`` [s]."""
+        tr = self._tracks.get(vehicle_id)
+        if tr is None:
+            raise ValueError(f"inserted: unknown vehicle {vehicle_id!r}")
+        if not (math.isfinite(arrival_s) and math.isfinite(t) and t >= arrival_s - 1e-9):
+            raise ValueError(f"inserted: bad times arrival {arrival_s!r}, insertion {t!r}")
+        tr.arrival_s = arrival_s
+        tr.inserted_s = t
 
     def record(
         self,
@@ -479,6 +510,13 @@ class MetricsRecorder:
                 if tr.t_gate0 is not None and tr.t_gate1 is not None
                 else None
             )
+            ins_delay = free = delay = None
+            if tr.arrival_s is not None and tr.inserted_s is not None:
+                ins_delay = max(tr.inserted_s - tr.arrival_s, 0.0)
+                v = self._sc.vehicle(vid)
+                free = free_flow_time_s(tr.route, v.start_offset_m, tr.goal, self._sc.limits(vid))
+                if tr.finished_s is not None:
+                    delay = max(tr.finished_s - tr.arrival_s - free, 0.0)
             vehicles[vid] = VehicleMetrics(
                 passing_time_s=passing,
                 first_through=first_through,
@@ -496,6 +534,11 @@ class MetricsRecorder:
                 mode_time_s=dict(tr.mode_time),
                 reason_time_s=dict(tr.reason_time),
                 mode_changes=tuple(tr.mode_changes),
+                arrival_s=tr.arrival_s,
+                inserted_s=tr.inserted_s,
+                insertion_delay_s=ins_delay,
+                free_flow_s=free,
+                delay_s=delay,
             )
         return RunMetrics(
             collisions=len(self._collisions),
@@ -545,3 +588,24 @@ def _pairs(n: int) -> tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]:
     ii.flags.writeable = False
     jj.flags.writeable = False
     return ii, jj
+
+
+@functools.lru_cache(maxsize=256)
+def free_flow_time_s(route: Polyline, s0: float, goal: float, limits: Limits) -> float:
+    """Least time [s] from rest at ``s0`` to rest at ``goal`` [m] along ``route``, alone:
+    speed within ``v_max`` and the curve caps, accelerating at ``accel``, braking at
+    ``decel_comfort`` (forward and backward passes on a :data:`FREE_FLOW_STEP_M` grid)."""
+    if not goal > s0:
+        raise ValueError(f"free_flow_time_s: goal {goal!r} must be beyond s0 {s0!r}")
+    n = max(math.ceil((goal - s0) / FREE_FLOW_STEP_M), 2)
+    s = np.linspace(s0, goal, n + 1)
+    ds = (goal - s0) / n
+    cap = curve_speed_cap(route, s, limits.lat_accel, limits.v_max, pad_m=ds)
+    v = np.minimum(cap, np.inf)
+    v[0] = v[-1] = 0.0
+    for k in range(1, n + 1):
+        v[k] = min(v[k], math.sqrt(v[k - 1] ** 2 + 2.0 * limits.accel * ds))
+    for k in range(n - 1, -1, -1):
+        v[k] = min(v[k], math.sqrt(v[k + 1] ** 2 + 2.0 * limits.decel_comfort * ds))
+    mean = 0.5 * (v[:-1] + v[1:])
+    return float(np.sum(ds / mean))

@@ -8,6 +8,7 @@ import math
 from enum import Enum
 from typing import Any
 
+import numpy as np
 from pydantic import BaseModel
 
 from services.model.results import (
@@ -16,6 +17,7 @@ from services.model.results import (
     Origin,
     Provenance,
     RunResult,
+    RunSummary,
     VehicleResult,
 )
 from services.model.scenario import Scenario
@@ -23,7 +25,7 @@ from services.model.types import Policy, RunMode
 from services.rsu.config import rsu_config
 from services.sim.metrics import RunMetrics
 
-__all__ = ["format_summary", "provenance", "rsu_parameters", "run_result"]
+__all__ = ["format_summary", "provenance", "rsu_parameters", "run_result", "run_summary"]
 
 
 def _num(x: float | None) -> float | None:
@@ -106,6 +108,8 @@ def run_result(
             stops=int(vm.stops),
             max_speed_mps=_num(vm.max_speed_mps),
             finished=bool(vm.finished),
+            delay_s=_num(vm.delay_s),
+            insertion_delay_s=_num(vm.insertion_delay_s),
         )
         for vid, vm in sorted(metrics.vehicles.items())
     }
@@ -131,6 +135,25 @@ def run_result(
             "provenance": provenance,
             **sections,
         }
+    )
+
+
+def run_summary(metrics: RunMetrics, sim_s: float) -> RunSummary:
+    """The run's traffic figures (``services.model.results`` defines them) from its metrics."""
+    cars = list(metrics.vehicles.values())
+    inserted = [vm for vm in cars if vm.inserted_s is not None]
+    delays = [vm.delay_s for vm in cars if vm.finished and vm.delay_s is not None]
+    finished = sum(1 for vm in cars if vm.finished)
+    return RunSummary(
+        vehicles_inserted=len(inserted),
+        vehicles_finished=finished,
+        all_finished=bool(cars) and finished == len(cars),
+        mean_delay_s=_num(float(np.mean(delays))) if delays else None,
+        p95_delay_s=_num(float(np.percentile(delays, 95.0))) if delays else None,
+        throughput_vph=_num(finished * 3600.0 / sim_s) if sim_s > 0 else None,
+        stops_per_vehicle=(
+            _num(sum(vm.stops for vm in inserted) / len(inserted)) if inserted else None
+        ),
     )
 
 

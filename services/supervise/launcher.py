@@ -658,6 +658,7 @@ def prepare_up(
     if not 0.0 <= start_delay_s <= 3600.0:
         raise ValueError(f"start delay must be within 0..3600 s, got {start_delay_s!r}")
     scenario = load_scenario(Path(scenario_path))
+    scenario.require_no_flows("crosspath up")
     stamp = time.strftime("%Y%m%d-%H%M%S")
     run_id = f"up-{stamp}-{secrets.token_hex(3)}"
     out = run_dir if run_dir is not None else Path("results") / "up" / f"{stamp}-{run_id[-6:]}"

@@ -179,3 +179,27 @@ def test_loss_is_a_fraction_in_every_command(text: str, value: float) -> None:
 def test_the_loss_sweep_default_losses_are_fractions() -> None:
     args = build_parser().parse_args(["experiment", "loss-sweep"])
     assert args.losses == (0.0, 0.1, 0.3, 0.5, 0.8, 1.0)
+
+
+FLOWS = REPO / "scenarios" / "four-way-flows.toml"
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["up", str(FLOWS), "--mode", "rsu"],
+        ["lab", "run", str(FLOWS), "--mode", "rsu"],
+        ["rsu", "--scenario", str(FLOWS), "--id", "rsu1"],
+    ],
+    ids=["up", "lab-run", "rsu-daemon"],
+)
+def test_daemon_harnesses_refuse_flows_in_one_line(place: Path, argv: list[str]) -> None:
+    """Flows run in the in-process harness only (issue 12): the daemons, `up` and the lab
+    refuse a flow scenario before starting anything, instead of running with no cars."""
+    before = _snapshot(place)
+    proc = crosspath(place / "cwd", *argv)
+    assert proc.returncode == 2, proc.stdout + proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1, proc.stderr
+    assert "flows" in lines[0] and "in-process harness" in lines[0], lines[0]
+    assert _snapshot(place) == before

@@ -619,3 +619,128 @@ def test_vehicle_params_defaults_and_overrides() -> None:
     assert err.path == "vehicles[1].params.creep_mps"
     err = _refused(MINIMAL + "\n[vehicle_params]\nwarp = 1\n")
     assert err.path == "vehicle_params.warp" and err.reason == "unknown key"
+
+
+# ------------------------------------------------------------------ flows (issue 12)
+
+FLOW = """
+[[flows]]
+id = "f"
+route = "r1"
+vehicles_per_hour = 600.0
+end_s = 60.0
+"""
+
+
+def _with_flow(flow: str = FLOW, base: str = MINIMAL) -> str:
+    return base + flow
+
+
+def test_flow_cars_are_named_and_appended_after_the_vehicles() -> None:
+    sc = parse_scenario(_with_flow())
+    assert [v.id for v in sc.vehicles] == ["A", "B"]  # unseeded: flows not drawn
+    trial = sc.for_seed(3)
+    arrivals = sc.draw_arrivals(3)["f"]
+    ids = [v.id for v in trial.vehicles]
+    assert ids[:2] == ["A", "B"]
+    assert ids[2:] == [f"f-{n}" for n in range(len(arrivals))]
+    assert len(arrivals) > 0
+    starts = trial.draw_start_times(3)
+    assert [starts[f"f-{n}"] for n in range(len(arrivals))] == arrivals
+    assert all(0.0 <= t < 60.0 for t in arrivals)
+    assert arrivals == sorted(arrivals)
+    car = trial.vehicle("f-0")
+    assert car.route == "r1" and car.start_offset_m == 0.0 and car.goal_m == pytest.approx(200.0)
+    assert trial.spec.flows == []
+    assert parse_scenario(MINIMAL).for_seed(3).vehicles == parse_scenario(MINIMAL).vehicles
+
+
+def test_flow_without_vehicles_and_with_its_own_dynamics() -> None:
+    base = MINIMAL.split("[[vehicles]]", 1)[0] + MINIMAL.split("start_offset_m = 20.0\n", 1)[1]
+    flow = FLOW + "length_m = 5.0\nwidth_m = 2.0\ndynamics = { v_max_mps = 10.0 }\n"
+    sc = parse_scenario(_with_flow(flow, base))
+    assert sc.vehicles == ()
+    trial = sc.for_seed(0)
+    assert trial.vehicles and all(v.id.startswith("f-") for v in trial.vehicles)
+    assert trial.vehicle("f-0").length_m == 5.0
+    assert trial.limits("f-0").v_max == 10.0
+
+
+def test_same_seed_same_arrivals_different_seed_different() -> None:
+    sc = parse_scenario(_with_flow())
+    assert sc.draw_arrivals(7) == sc.draw_arrivals(7)
+    assert sc.draw_arrivals(7) != sc.draw_arrivals(8)
+    assert [v.id for v in sc.for_seed(7).vehicles] == [v.id for v in sc.for_seed(7).vehicles]
+
+
+def test_poisson_counts_vary_around_the_rate_uniform_counts_are_exact() -> None:
+    poisson = parse_scenario(_with_flow())  # 600 veh/h over 60 s: 10 expected
+    counts = [len(poisson.draw_arrivals(seed)["f"]) for seed in range(200)]
+    assert len(set(counts)) > 3
+    assert 9.0 < float(np.mean(counts)) < 11.0
+    uniform = parse_scenario(_with_flow(FLOW + 'arrivals = "uniform"\nbegin_s = 5.0\n'))
+    times = uniform.draw_arrivals(0)["f"]
+    assert times == uniform.draw_arrivals(1)["f"]
+    assert len(times) == 10  # 60 - 5 = 55 s at one car per 6 s: 5, 11, ..., 59
+    assert times[0] == 5.0 and np.allclose(np.diff(times), 6.0)
+
+
+def test_seed_is_checked() -> None:
+    sc = parse_scenario(_with_flow())
+    with pytest.raises(ValueError, match="seed"):
+        sc.draw_arrivals(-1)
+
+
+@pytest.mark.parametrize(
+    ("old", "new", "path", "reason"),
+    [
+        ("vehicles_per_hour = 600.0", "vehicles_per_hour = 0.0", "flows[0].vehicles_per_hour", ""),
+        ("end_s = 60.0", "", "flows[0].end_s", "required"),
+        ("end_s = 60.0", "end_s = 60.0\nbegin_s = 60.0", "flows[0]", "after begin_s"),
+        ("end_s = 60.0", 'end_s = 60.0\narrivals = "burst"', "flows[0].arrivals", ""),
+        ('route = "r1"', 'route = "zz"', "flows[0].route", "unknown route"),
+        ('id = "f"', 'id = "' + "f" * 28 + '"', "flows[0].id", "too long for a flow id"),
+        ('id = "f"', 'id = "A"\n', "flows[0].id", ""),  # fine id: refused below for clash
+        ("end_s = 60.0", "end_s = 60.0\ncolour = 1", "flows[0].colour", "unknown key"),
+        (
+            "vehicles_per_hour = 600.0",
+            "vehicles_per_hour = 600000.0",
+            "flows[0].vehicles_per_hour",
+            "at most 5000",
+        ),
+        (
+            "end_s = 60.0",
+            "end_s = 60.0\ndynamics = { v_max_mps = 99.0 }",
+            "flows[0].dynamics.v_max_mps",
+            "the wire carries",
+        ),
+    ],
+)
+def test_broken_flows_are_refused_with_path(old: str, new: str, path: str, reason: str) -> None:
+    text = _with_flow(FLOW.replace(old, new, 1))
+    if path == "flows[0].id" and not reason:
+        text = text.replace('id = "A"\nroute = "r1"', 'id = "A-1"\nroute = "r1"', 1)
+        reason = "'A-1' is already a vehicle"
+    err = _refused(text)
+    assert err.path == path, str(err)
+    assert reason in err.reason, str(err)
+
+
+def test_a_flow_id_of_27_characters_is_accepted() -> None:
+    sc = parse_scenario(_with_flow(FLOW.replace('id = "f"', 'id = "' + "f" * 27 + '"')))
+    assert max(len(v.id) for v in sc.for_seed(0).vehicles) <= 32
+
+
+def test_a_scenario_needs_vehicles_or_flows() -> None:
+    base = MINIMAL.split("[[vehicles]]", 1)[0] + MINIMAL.split("start_offset_m = 20.0\n", 1)[1]
+    err = _refused(base)
+    assert err.path == "vehicles" and "[[flows]]" in err.reason
+
+
+def test_packaged_four_way_flows_loads() -> None:
+    sc = load_scenario(ROOT / "scenarios" / "four-way-flows.toml")
+    assert len(sc.route_ids) == 12 and len(sc.spec.flows) == 12 and len(sc.rsus) == 1
+    trial = sc.for_seed(0)
+    assert len(trial.vehicles) > 12
+    for rid in sc.route_ids:
+        assert len(sc.crossings(rid)) == 1

@@ -484,6 +484,7 @@ class LabSession:
     def __post_init__(self) -> None:
         check_lab_name(self.name)
         self.scenario = load_scenario(self.scenario_path)
+        self.scenario.require_no_flows("the network lab")
         self.order = node_order(self.scenario, self.mode, MONITOR)
         cars = [v.id for v in self.scenario.vehicles]
         rsus = [r.id for r in self.scenario.rsus] if self.mode is RunMode.RSU else []
