@@ -40,6 +40,7 @@ from pathlib import Path
 from typing import Any, Final, get_args
 
 from services.edge.args import (
+    add_mode_and_policy,
     float_at_least,
     fraction,
     non_negative_int,
@@ -143,18 +144,7 @@ _LOG_LEVELS: Final = list(get_args(LogLevel))
 
 
 def _add_run_choice(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
-        "--mode",
-        choices=[m.value for m in RunMode],
-        default=RunMode.RSU.value,
-        help="standalone (no V2X), fp-only (future paths), rsu (future paths and the RSU)",
-    )
-    parser.add_argument(
-        "--policy",
-        choices=[p.value for p in Policy],
-        default=Policy.PAPER.value,
-        help="the RSU's velocity manager (rsu mode)",
-    )
+    add_mode_and_policy(parser)
     parser.add_argument("--seed", type=non_negative_int, default=0, help="seed of the start times")
     parser.add_argument(
         "--speed", type=run_speed, default=1.0, help="run seconds per wall second, up to 1000"

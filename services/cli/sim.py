@@ -10,26 +10,20 @@ import sys
 from pathlib import Path
 
 from services.api import simulate
-from services.edge.args import fraction, non_negative_float, non_negative_int, output_file
+from services.edge.args import (
+    add_mode_and_policy,
+    fraction,
+    non_negative_float,
+    non_negative_int,
+    output_file,
+)
 from services.model.scenario import ScenarioError, load_scenario
-from services.model.types import Policy, RunMode
 from services.sim.results import format_summary
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("scenario", type=Path, help="TOML file or packaged name")
-    parser.add_argument(
-        "--mode",
-        choices=[m.value for m in RunMode],
-        default=RunMode.RSU.value,
-        help="standalone (no V2X), fp-only (future paths), rsu (future paths and the RSU)",
-    )
-    parser.add_argument(
-        "--policy",
-        choices=[p.value for p in Policy],
-        default=Policy.PAPER.value,
-        help="the RSU's velocity manager (rsu mode)",
-    )
+    add_mode_and_policy(parser)
     parser.add_argument(
         "--seed", type=non_negative_int, default=0, help="seed of the start offsets and the channel"
     )

@@ -27,8 +27,10 @@ from collections.abc import Callable
 from pathlib import Path
 
 from services.edge.plumbing import MAX_SPEED
+from services.model.types import Policy, RunMode
 
 __all__ = [
+    "add_mode_and_policy",
     "finite_float",
     "float_at_least",
     "fraction",
@@ -167,3 +169,19 @@ def output_dir(text: str) -> Path:
         return path
     _creatable_under(path.parent, path)
     return path
+
+
+def add_mode_and_policy(parser: argparse.ArgumentParser) -> None:
+    """``--mode`` and ``--policy``, the same in every command that runs the scenario."""
+    parser.add_argument(
+        "--mode",
+        choices=[m.value for m in RunMode],
+        default=RunMode.RSU.value,
+        help="standalone (no V2X), fp-only (future paths), rsu (future paths and the RSU)",
+    )
+    parser.add_argument(
+        "--policy",
+        choices=[p.value for p in Policy],
+        default=Policy.PAPER.value,
+        help="the RSU's velocity manager (rsu mode)",
+    )

@@ -69,6 +69,7 @@ from types import FrameType
 from typing import IO, Final, get_args
 
 from services.edge.args import (
+    add_mode_and_policy,
     non_negative_float,
     non_negative_int,
     output_dir,
@@ -694,18 +695,7 @@ def prepare_up(
 def configure(parser: argparse.ArgumentParser) -> None:
     """Options of ``crosspath up``."""
     parser.add_argument("scenario", type=Path, help="TOML file or packaged name")
-    parser.add_argument(
-        "--mode",
-        choices=[m.value for m in RunMode],
-        default=RunMode.RSU.value,
-        help="standalone (no V2X), fp-only (future paths), rsu (future paths and the RSU)",
-    )
-    parser.add_argument(
-        "--policy",
-        choices=[p.value for p in Policy],
-        default=Policy.PAPER.value,
-        help="the RSU's velocity manager (rsu mode)",
-    )
+    add_mode_and_policy(parser)
     parser.add_argument("--seed", type=non_negative_int, default=0, help="seed of the start times")
     parser.add_argument(
         "--speed", type=run_speed, default=1.0, help="run seconds per wall second, up to 1000"

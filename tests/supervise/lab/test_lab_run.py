@@ -386,7 +386,12 @@ def test_rsu_crash_fallback_and_restart_rebuild(lab_ready: None, tmp_path: Path)
     _gone(result)
 
 
-@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+# seed 1 is the issue's command; the other seeds (~28 s each) run on CI (`slow`)
+@pytest.mark.parametrize(
+    "seed",
+    [pytest.param(0, marks=pytest.mark.slow), 1]
+    + [pytest.param(s, marks=pytest.mark.slow) for s in (2, 3)],
+)
 def test_an_rsu_restart_keeps_the_headway(lab_ready: None, tmp_path: Path, seed: int) -> None:
     """Issue 16: ``lab run ... --crash rsu1@12 --restart rsu1@19`` gave min PET 0.04 s (seed 1):
     the restarted RSU re-ordered cars already committed. It now listens first and keeps
