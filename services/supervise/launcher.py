@@ -627,6 +627,11 @@ class UpRun:
         return result.updated(crashes=[*(result.crashes or []), *extra])
 
 
+def _is_number(value: object) -> bool:
+    """An int or float, not a bool (``True`` is not a speed)."""
+    return isinstance(value, int | float) and not isinstance(value, bool)
+
+
 def prepare_up(
     scenario_path: str | os.PathLike[str],
     mode: RunMode | str = RunMode.RSU,
@@ -650,9 +655,9 @@ def prepare_up(
     run_mode, run_policy = parse_mode(mode), parse_policy(policy)
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
         raise ValueError(f"seed must be an int >= 0, got {seed!r}")
-    if not 0.0 < speed <= 1000.0:
+    if not (_is_number(speed) and 0.0 < speed <= 1000.0):
         raise ValueError(f"speed must be in (0, 1000], got {speed!r}")
-    if timeout_s is not None and not 0.0 < timeout_s < float("inf"):
+    if timeout_s is not None and not (_is_number(timeout_s) and 0.0 < timeout_s < float("inf")):
         raise ValueError(f"timeout must be a finite number > 0 [s], got {timeout_s!r}")
     if max_sim_s is not None and not 0.0 < max_sim_s < float("inf"):
         raise ValueError(f"max_sim_s must be a finite number > 0 [s], got {max_sim_s!r}")
