@@ -14,7 +14,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from services.edge.args import output_file, positive_int
+from services.edge.args import add_scenario_option, output_file, positive_int
 from services.edge.progress import Ticker
 from services.model.catalog import default_scenario
 from services.model.scenario import load_scenario
@@ -58,9 +58,7 @@ def measure(scenario_path: Path = DEFAULT_SCENARIO, seeds: int = 3) -> dict[str,
 
 def configure(parser: argparse.ArgumentParser) -> None:
     """Options of ``crosspath bench sim``; bad values are refused while parsing."""
-    parser.add_argument(
-        "--scenario", type=Path, default=DEFAULT_SCENARIO, help="TOML file or packaged name"
-    )
+    add_scenario_option(parser)
     parser.add_argument(
         "--seeds", type=positive_int, default=3, help="runs per case (seeds 0..N-1; median)"
     )

@@ -16,12 +16,10 @@ from pathlib import Path
 
 from services.api import DaemonRunError, RunInterrupted, run_daemons
 from services.daemons.monitor import format_network
-from services.edge.args import non_negative_int, output_dir, run_speed
-from services.model.catalog import default_scenario
+from services.edge.args import add_scenario_option, non_negative_int, output_dir, run_speed
 from services.model.results import RunResult
 from services.model.types import Policy, RunMode
 
-DEFAULT_SCENARIO = default_scenario()
 """The packaged paper scenario (``services.model.catalog``), wherever crosspath is installed."""
 
 PAPER_MEAN_S = {"standalone": 36.51, "fp-only": 37.17, "rsu": 27.05}
@@ -30,9 +28,7 @@ PAPER_MEAN_S = {"standalone": 36.51, "fp-only": 37.17, "rsu": 27.05}
 
 def configure(parser: argparse.ArgumentParser) -> None:
     """Options of ``crosspath demo``; bad values are refused while parsing."""
-    parser.add_argument(
-        "--scenario", type=Path, default=DEFAULT_SCENARIO, help="TOML file or packaged name"
-    )
+    add_scenario_option(parser)
     parser.add_argument("--seed", type=non_negative_int, default=1, help="seed of the start times")
     parser.add_argument(
         "--speed", type=run_speed, default=1.0, help="run seconds per wall second, up to 1000"

@@ -17,6 +17,7 @@ import argparse
 import importlib
 import re
 import sys
+import textwrap
 from collections.abc import Sequence
 from typing import NoReturn
 
@@ -92,6 +93,12 @@ class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
         else:
             shown = str(default)
         return f"{text} (default: {shown.replace('%', '%%')})".lstrip()
+
+    def _split_lines(self, text: str, width: int) -> list[str]:
+        """Wrap at spaces only: a default path or name (``paper-blind-intersection``)
+        stays whole, so it can be copied from the help."""
+        text = " ".join(text.split())
+        return textwrap.wrap(text, width, break_on_hyphens=False, break_long_words=False)
 
 
 def _add_parser(

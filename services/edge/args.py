@@ -27,6 +27,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from services.edge.plumbing import MAX_SPEED
+from services.model.catalog import DEFAULT_SCENARIO_NAME
 from services.model.types import Policy, RunMode
 
 __all__ = [
@@ -184,4 +185,15 @@ def add_mode_and_policy(parser: argparse.ArgumentParser) -> None:
         choices=[p.value for p in Policy],
         default=Policy.PAPER.value,
         help="the RSU's velocity manager (rsu mode)",
+    )
+
+
+def add_scenario_option(parser: argparse.ArgumentParser) -> None:
+    """``--scenario``, defaulting to the paper's scenario by its packaged name (a name,
+    not a path, so the help shows it whole wherever the package is installed)."""
+    parser.add_argument(
+        "--scenario",
+        type=Path,
+        default=Path(DEFAULT_SCENARIO_NAME),
+        help="TOML file or packaged name",
     )

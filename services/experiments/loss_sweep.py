@@ -41,6 +41,7 @@ from pathlib import Path
 from typing import Any, Final
 
 from services.edge.args import (
+    add_scenario_option,
     float_at_least,
     fraction,
     non_negative_int,
@@ -465,9 +466,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
         default=Policy.PAPER.value,
         help="the RSU's velocity manager",
     )
-    parser.add_argument(
-        "--scenario", type=Path, default=DEFAULT_SCENARIO, help="TOML file or packaged name"
-    )
+    add_scenario_option(parser)
     parser.add_argument(
         "--burst",
         type=float_at_least(1.0),

@@ -59,7 +59,13 @@ from typing import Any
 
 import numpy as np
 
-from services.edge.args import non_negative_int, output_dir, positive_int, run_speed
+from services.edge.args import (
+    add_scenario_option,
+    non_negative_int,
+    output_dir,
+    positive_int,
+    run_speed,
+)
 from services.experiments.common import (
     Column,
     DaemonRunner,
@@ -1060,9 +1066,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--jobs", type=positive_int, default=None, help="worker processes (default: all cores)"
     )
-    parser.add_argument(
-        "--scenario", type=Path, default=DEFAULT_SCENARIO, help="TOML file or packaged name"
-    )
+    add_scenario_option(parser)
     parser.add_argument(
         "--daemons",
         action="store_true",

@@ -142,3 +142,12 @@ def test_up_writes_its_logs_beside_its_result_not_in_the_working_directory(
     assert {p.name for p in logs.iterdir()} >= {"monitor.log", "A.log", "B.log", "result.json"}
     assert list(cwd.iterdir()) == []  # no ./results
     assert proc.stderr == ""  # not a terminal: no status line
+
+
+def test_help_never_breaks_a_default_path_or_name() -> None:
+    """CI checks out under a long directory: a default path must stay one word."""
+    parser = argparse.ArgumentParser(prog="x", formatter_class=HelpFormatter)
+    long_path = "/check/work/some-long-directory-name/scenarios/paper-blind-intersection.toml"
+    parser.add_argument("--scenario", default=long_path, help="TOML file or packaged name")
+    words = parser.format_help().split()
+    assert f"{long_path})" in words
