@@ -71,19 +71,25 @@ __all__ = [
     "VehicleTrace",
     "binned_mean",
     "collect_errors",
+    "fmt_ci",
     "fmt_num",
     "fmt_signed_pct",
     "markdown_table",
+    "out_of",
     "pyplot",
     "read_trace_csv",
     "run_in_process",
     "run_trials",
+    "save_figure",
     "split_trace",
     "strip_wall_clock",
     "summarize",
+    "t_interval95",
+    "t_quantile_975",
     "trials_for",
     "vehicle_color",
     "write_json",
+    "write_runs_csv",
     "write_trace_csv",
 ]
 
@@ -386,18 +392,59 @@ def run_trials(
 # --------------------------------------------------------------------------- aggregates
 
 
+# Two-sided 95 % quantiles of Student's t, df = 1..30; beyond, a Cornish-Fisher expansion
+# around the normal quantile (error < 1e-4). No scipy dependency for one number.
+_T975: tuple[float, ...] = (
+    12.7062, 4.3027, 3.1824, 2.7764, 2.5706, 2.4469, 2.3646, 2.3060, 2.2622, 2.2281,
+    2.2010, 2.1788, 2.1604, 2.1448, 2.1314, 2.1199, 2.1098, 2.1009, 2.0930, 2.0860,
+    2.0796, 2.0739, 2.0687, 2.0639, 2.0595, 2.0555, 2.0518, 2.0484, 2.0452, 2.0423,
+)  # fmt: skip
+
+
+def t_quantile_975(df: int) -> float:
+    """The 0.975 quantile of Student's t with ``df`` degrees of freedom (``df >= 1``)."""
+    if df < 1:
+        raise ValueError(f"degrees of freedom must be >= 1, got {df}")
+    if df <= len(_T975):
+        return _T975[df - 1]
+    z = 1.959964
+    return z + (z**3 + z) / (4 * df) + (5 * z**5 + 16 * z**3 + 3 * z) / (96 * df**2)
+
+
+def t_interval95(values: Sequence[float]) -> tuple[float, float] | None:
+    """The 95 % t-interval of the mean of ``values`` [same unit]; None below two values
+    (no spread to estimate), the point itself when every value is the same."""
+    arr = np.asarray([float(v) for v in values], dtype=np.float64)
+    if arr.size < 2:
+        return None
+    half = t_quantile_975(int(arr.size) - 1) * float(arr.std(ddof=1)) / math.sqrt(arr.size)
+    mean = float(arr.mean())
+    return mean - half, mean + half
+
+
 def summarize(values: Sequence[float | None]) -> dict[str, Any]:
-    """Mean, sample standard deviation, min and max of the values that are not None.
+    """Mean, sample standard deviation, min, max and the 95 % t-interval of the mean
+    (``ci95_low``/``ci95_high``) of the values that are not None.
 
     ``n`` counts those values, ``missing`` the None ones; the statistics are None
-    when nothing was measured (std is 0.0 for a single value).
+    when nothing was measured (std is 0.0 for a single value, whose interval is None).
     """
     got = [float(v) for v in values if v is not None and math.isfinite(v)]
     missing = len(values) - len(got)
     if not got:
-        return {"n": 0, "missing": missing, "mean": None, "std": None, "min": None, "max": None}
+        return {
+            "n": 0,
+            "missing": missing,
+            "mean": None,
+            "std": None,
+            "min": None,
+            "max": None,
+            "ci95_low": None,
+            "ci95_high": None,
+        }
     arr = np.asarray(got, dtype=np.float64)
     std = float(arr.std(ddof=1)) if arr.size > 1 else 0.0
+    ci = t_interval95(got)
     return {
         "n": int(arr.size),
         "missing": missing,
@@ -405,7 +452,25 @@ def summarize(values: Sequence[float | None]) -> dict[str, Any]:
         "std": round(std, 4),
         "min": round(float(arr.min()), 4),
         "max": round(float(arr.max()), 4),
+        "ci95_low": None if ci is None else round(ci[0], 4),
+        "ci95_high": None if ci is None else round(ci[1], 4),
     }
+
+
+def fmt_ci(s: Mapping[str, Any], unit: str = "", digits: int = 2) -> str:
+    """``12.35 s [11.90, 12.80]``: a :func:`summarize` mean with its 95 % interval
+    (the mean alone from one value; an en dash when nothing was measured)."""
+    if s.get("mean") is None:
+        return "–"
+    text = fmt_num(s["mean"], unit, digits)
+    if s.get("ci95_low") is not None:
+        text += f" [{s['ci95_low']:.{digits}f}, {s['ci95_high']:.{digits}f}]"
+    return text
+
+
+def out_of(k: int, n: int, noun: str = "trial") -> str:
+    """``3 out of 30 trials``: a count always beside the number it is out of."""
+    return f"{k} out of {n} {noun if n == 1 else noun + 's'}"
 
 
 def strip_wall_clock(obj: Any, keys: frozenset[str] = WALL_CLOCK_KEYS) -> Any:
@@ -551,6 +616,49 @@ def pyplot() -> Any:
     import matplotlib.pyplot as plt
 
     return plt
+
+
+FIGURE_DPI = 300
+FIGURE_FORMATS: tuple[str, ...] = ("png", "pdf", "svg")
+
+
+def save_figure(fig: Any, path: Path, dpi: int = FIGURE_DPI) -> list[str]:
+    """Write ``fig`` as ``path`` (PNG at ``dpi``) and beside it as PDF and SVG (vector,
+    for a paper); closes the figure. Returns the file names written, PNG first."""
+    plt = pyplot()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    names = []
+    try:
+        for ext in FIGURE_FORMATS:
+            target = path.with_suffix("." + ext)
+            fig.savefig(target, dpi=dpi, bbox_inches="tight", metadata=_figure_metadata(ext))
+            names.append(target.name)
+    finally:
+        plt.close(fig)
+    return names
+
+
+def _figure_metadata(ext: str) -> dict[str, Any]:
+    """No creation date in PDF/SVG, so that the same run writes the same bytes."""
+    if ext == "pdf":
+        return {"CreationDate": None, "Creator": "crosspath"}
+    if ext == "svg":
+        return {"Date": None, "Creator": "crosspath"}
+    return {"Software": "crosspath"}
+
+
+def write_runs_csv(path: Path, rows: Sequence[Mapping[str, Any]]) -> None:
+    """``runs.csv``: one row per run, the union of every row's keys as columns (in
+    first-seen order), empty cells where a run has no value."""
+    columns: dict[str, None] = {}
+    for row in rows:
+        columns.update(dict.fromkeys(row))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=list(columns), restval="")
+        writer.writeheader()
+        for row in rows:
+            writer.writerow({k: ("" if v is None else v) for k, v in row.items()})
 
 
 def vehicle_color(index: int) -> str:

@@ -19,12 +19,14 @@ Writes into the output directory:
     per loss: average passing time (lab, in-process), collisions, min PET, min
     gap, future-path delivery ratio, the loss measured by the nft rules, time
     spent coordinated and on-air rate per car;
-``loss_sweep.png``
+``runs.csv``
+    one row per run (lab, in-process, stand-alone reference): parameters and metrics;
+``loss_sweep.png`` (and ``.pdf``, ``.svg``)
     average passing time, collisions and min PET against loss.
 
 Decisions where the issue is silent: the min PET of a loss rate is the
 smallest over its trials (the worst case, as safety is read), the passing time
-the mean over trials of each run's mean over cars (± sample std). A failed
+the mean over trials of each run's mean over cars [95 % Student-t interval]. A failed
 trial is reported (``errors``) and left out of the aggregates; the command
 then exits 1 after writing what it has.
 """
@@ -56,14 +58,17 @@ from services.experiments.common import (
     Trial,
     TrialOutcome,
     collect_errors,
+    fmt_ci,
     fmt_num,
     markdown_table,
     pyplot,
     run_in_process,
     run_trials,
+    save_figure,
     summarize,
     trials_for,
     write_json,
+    write_runs_csv,
 )
 from services.experiments.paper import DEFAULT_SCENARIO
 from services.model.results import RunResult
@@ -238,13 +243,13 @@ def render_table(doc: Mapping[str, Any]) -> str:
         s = doc["aggregates"]["in_process"].get(key, {})
         pt = a.get("average_passing_time_s", {})
         spt = s.get("average_passing_time_s", {})
-        std = pt.get("std")
         rows.append(
             [
                 col["title"],
-                fmt_num(pt.get("mean")) + ("" if std is None else f" ± {std:.2f}"),
+                fmt_ci(pt) if pt else "–",
                 fmt_num(spt.get("mean")),
-                f"{a.get('collisions', '–')} / {a.get('runs', 0)} runs",
+                f"{a.get('collisions', '–')} in {a.get('runs_with_collision', 0)}"
+                f" / {a.get('runs', 0)} runs",
                 fmt_num(a.get("min_pet_s")),
                 fmt_num(a.get("min_gap_m")),
                 fmt_num(a.get("fp_delivery"), digits=3),
@@ -261,6 +266,8 @@ def render_table(doc: Mapping[str, Any]) -> str:
         f"{doc['base_seed']}..{doc['base_seed'] + doc['trials'] - 1}), lab at speed "
         f"{doc['speed']:g}; ingress loss on every car and RSU (per receiver).",
         f"Stand-alone (no V2X, in-process, same seeds): average passing {fmt_num(ref)} s.",
+        "avg passing (lab): mean over runs [95 % Student-t interval]; collisions: total in"
+        " k / N runs with one.",
         "min PET: smallest over the trials; measured loss: packets dropped by the nft rules "
         "over packets they saw; air tx: interface bytes (all headers, one copy per "
         "receiver) per run second; V2X payload: the daemons' own count.",
@@ -268,12 +275,13 @@ def render_table(doc: Mapping[str, Any]) -> str:
     return table + "\n\n" + "\n".join(f"- {n}" for n in notes) + "\n"
 
 
-def plot_sweep(doc: Mapping[str, Any], path: Path, dpi: int = 110) -> None:
-    """Average passing time, collisions and min PET against loss (lab and in-process)."""
+def plot_sweep(doc: Mapping[str, Any], path: Path) -> list[str]:
+    """Average passing time (mean, 95 % t-interval), collisions and min PET against
+    loss, lab and in-process; PNG at 300 dpi, PDF and SVG. Returns the files written."""
     plt = pyplot()
     cols = doc["columns"]
     x = [100.0 * float(c["loss"]) for c in cols]
-    fig, axes = plt.subplots(1, 3, figsize=(12.0, 3.6))
+    fig, axes = plt.subplots(1, 3, figsize=(7.16, 2.8))
 
     def series(harness: str, key: str, field: str | None = None) -> list[float]:
         out: list[float] = []
@@ -287,8 +295,13 @@ def plot_sweep(doc: Mapping[str, Any], path: Path, dpi: int = 110) -> None:
 
     ax = axes[0]
     mean = series("lab", "average_passing_time_s", "mean")
-    std = [0.0 if math.isnan(s) else s for s in series("lab", "average_passing_time_s", "std")]
-    ax.errorbar(x, mean, yerr=std, marker="o", capsize=3, label="lab (daemons)")
+    low = series("lab", "average_passing_time_s", "ci95_low")
+    high = series("lab", "average_passing_time_s", "ci95_high")
+    yerr = [
+        [0.0 if math.isnan(lo) else m - lo for m, lo in zip(mean, low, strict=True)],
+        [0.0 if math.isnan(hi) else hi - m for m, hi in zip(mean, high, strict=True)],
+    ]
+    ax.errorbar(x, mean, yerr=yerr, marker="o", capsize=3, label="lab, 95 % CI")
     ax.plot(
         x,
         series("in_process", "average_passing_time_s", "mean"),
@@ -299,8 +312,8 @@ def plot_sweep(doc: Mapping[str, Any], path: Path, dpi: int = 110) -> None:
     ref = doc.get("standalone_reference", {}).get("average_passing_time_s", {}).get("mean")
     if ref is not None:
         ax.axhline(ref, color="grey", ls=":", label="stand-alone")
-    ax.set_ylabel("average passing time [s]")
-    ax.legend(fontsize=8)
+    ax.set_ylabel("average passing time [s]", fontsize=8)
+    ax.legend(fontsize=6)
     ax = axes[1]
     width = 3.0
     ax.bar([v - width / 2 for v in x], series("lab", "collisions"), width, label="lab")
@@ -314,23 +327,59 @@ def plot_sweep(doc: Mapping[str, Any], path: Path, dpi: int = 110) -> None:
     for v, c in zip(x, series("lab", "collisions"), strict=True):
         if c == c:  # not NaN
             ax.annotate(f"{c:g}", (v - width / 2, c), ha="center", va="bottom", fontsize=8)
-    ax.set_ylabel(f"collisions (sum over {doc['trials']} trials)")
+    ax.set_ylabel(f"collisions (sum over {doc['trials']} trials)", fontsize=8)
     ax.set_ylim(bottom=0, top=max(1.0, *[v for v in series("lab", "collisions") if v == v]))
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=6)
     ax = axes[2]
     ax.plot(x, series("lab", "min_pet_s"), "o-", label="lab (min over trials)")
     ax.plot(x, series("in_process", "min_pet_s"), "s--", alpha=0.7, label="in-process")
-    ax.set_ylabel("min PET [s]")
+    ax.set_ylabel("min PET [s]", fontsize=8)
     ax.set_ylim(bottom=0)
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=6)
     for ax in axes:
-        ax.set_xlabel("air packet loss [%]")
+        ax.set_xlabel("air packet loss [%]", fontsize=8)
         ax.grid(True, lw=0.3, alpha=0.5)
-    fig.suptitle(f"{doc['scenario_name']}: rsu mode against packet loss", fontsize=10)
+        ax.tick_params(labelsize=7)
+    fig.suptitle(f"{doc['scenario_name']}: rsu mode against packet loss", fontsize=9)
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=dpi)
-    plt.close(fig)
+    return save_figure(fig, path)
+
+
+def runs_rows(doc: Mapping[str, Any]) -> list[dict[str, Any]]:
+    """``runs.csv``'s rows: one per run (lab, in-process and the stand-alone reference)."""
+    rows: list[dict[str, Any]] = []
+    loss_of = {c["key"]: c["loss"] for c in doc["columns"]}
+    groups: list[tuple[str, str, str, list[Any]]] = []
+    for harness in ("lab", "in_process"):
+        for key, runs in doc["runs"][harness].items():
+            groups.append((harness, key, str(RunMode.RSU), runs))
+    groups.append(
+        ("in_process", "standalone", str(RunMode.STANDALONE), doc["runs"]["standalone_in_process"])
+    )
+    for harness, key, mode, runs in groups:
+        for trial, raw in enumerate(runs):
+            r = RunResult.model_validate(raw)
+            rows.append(
+                {
+                    "experiment": "loss-sweep",
+                    "scenario": doc["scenario_name"],
+                    "harness": harness,
+                    "column": key,
+                    "mode": mode,
+                    "policy": doc["policy"] if mode == str(RunMode.RSU) else "",
+                    "loss": loss_of.get(key, 0.0),
+                    "speed": doc["speed"] if harness == "lab" else "",
+                    "trial": trial,
+                    "seed": r.seed,
+                    "collisions": r.collisions,
+                    "min_gap_m": r.min_gap_m,
+                    "min_pet_s": r.min_pet_s,
+                    "all_finished": r.all_finished,
+                    "mean_passing_time_s": r.mean_passing_time_s,
+                    "sim_s": r.sim_s,
+                }
+            )
+    return rows
 
 
 # --------------------------------------------------------------------------- the sweep
@@ -350,7 +399,8 @@ def run_sweep(
     timeout_s: float | None = None,
     progress: bool = True,
 ) -> dict[str, Any]:
-    """Run the sweep and write ``results.json``, ``table.md`` and ``loss_sweep.png``.
+    """Run the sweep and write ``results.json``, ``runs.csv``, ``table.md`` and
+    ``loss_sweep.png`` (with ``.pdf`` and ``.svg``).
 
     Returns the document written as ``results.json`` (its ``errors`` lists failed
     trials). Raises ``ValueError`` for bad arguments, ``ScenarioError`` for an
@@ -419,6 +469,7 @@ def run_sweep(
     out.mkdir(parents=True, exist_ok=True)
     with watch.phase("figures_s"):
         plot_sweep(doc, out / "loss_sweep.png")
+    write_runs_csv(out / "runs.csv", runs_rows(doc))
     doc["timing"] = {
         "wall_s": round(time.perf_counter() - t0, 3),
         "sum_of_lab_run_wall_s": round(sum(o.wall_s for o in lab_outcomes), 3),

@@ -14,11 +14,14 @@ Writes into the output directory:
     aggregates and the paper's own numbers;
 ``table.md``
     Table I for our system beside the paper's, plus safety rows;
-``speed_profiles.png``
+``runs.csv``
+    one row per run: every parameter (column, mode, policy, loss, seed) and metric;
+``speed_profiles.png`` (and ``.pdf``, ``.svg``)
     speed against position relative to the intersection centre, one panel per
     column (the paper's Fig. 6);
-``passing_times.png``
-    every car's passing time in every trial, per column (the paper's Fig. 5);
+``passing_times.png`` (and ``.pdf``, ``.svg``)
+    every car's passing time in every trial, per column, with the mean and its 95 %
+    t-interval (the paper's Fig. 5);
 ``REPORT.md``
     the table, the figures, and why each mode behaves as it does, in sentences
     generated from the numbers of the planner traces.
@@ -32,6 +35,9 @@ Decisions where the issue is silent:
   exceeded 1.0 m/s, not at the goal); its place is reported as the distance of
   the car's centre before the centre, and of its front bumper behind the stop
   line.
+- Figures are PNG at 300 dpi plus PDF and SVG; every mark is explained in the
+  figure's own legend. Means carry a 95 % Student-t interval over trials (none from
+  a single trial); counts are given "out of N trials" beside the paper's own.
 - Safety rows aggregate over trials: total collisions, and the worst (smallest)
   minimum gap and PET of any trial.
 - The paper's table gives car A first 6 times with the RSU while its text says
@@ -75,17 +81,21 @@ from services.experiments.common import (
     VehicleTrace,
     binned_mean,
     collect_errors,
+    fmt_ci,
     fmt_num,
     fmt_signed_pct,
     markdown_table,
     pyplot,
     run_in_process,
     run_trials,
+    save_figure,
     split_trace,
     summarize,
+    t_interval95,
     trials_for,
     vehicle_color,
     write_json,
+    write_runs_csv,
     write_trace_csv,
 )
 from services.model.catalog import default_scenario
@@ -111,6 +121,7 @@ __all__ = [
     "render_table",
     "run",
     "run_paper_experiment",
+    "runs_rows",
     "table_rows",
 ]
 
@@ -143,6 +154,7 @@ COLUMNS: tuple[Column, ...] = (
 
 PAPER_REFERENCE: dict[str, Any] = {
     "source": "future-path-sharing.tex, Table I (10 trials per scenario, LGSVL + Autoware)",
+    "trials": 10,
     "note": (
         "The table gives car A first 6 times with the RSU; the text says 4. The table is quoted."
     ),
@@ -456,16 +468,17 @@ def table_rows(
         return "–"
 
     def pm(s: Mapping[str, Any], unit: str) -> str:
-        if s["mean"] is None:
-            return "–"
-        text = f"{s['mean']:.2f} ± {s['std']:.2f} {unit}"
-        return text + (f" ({s['missing']} missing)" if s["missing"] else "")
+        text = fmt_ci(s, unit)
+        return text + (f" ({s['missing']} missing)" if s["missing"] and s["mean"] else "")
 
+    paper_trials = PAPER_REFERENCE["trials"]
     for v in vehicles:
         row(
             f"Car {v} passes first",
-            lambda a, v=v: str(a["first_through"][v]),
-            lambda _k, p, v=v: str(p["first_through"].get(v, "–")),
+            lambda a, v=v: f"{a['first_through'][v]} / {a['trials']}",
+            lambda _k, p, v=v: (
+                f"{p['first_through'][v]} / {paper_trials}" if v in p["first_through"] else "–"
+            ),
         )
     for v in vehicles:
         row(
@@ -493,7 +506,11 @@ def table_rows(
             lambda a, v=v: fmt_num(a["stops"][v]["mean"], digits=1),
             dash,
         )
-    row("Collisions (all trials)", lambda a: str(a["collisions"]), dash)
+    row(
+        "Collisions (trials with one)",
+        lambda a: f"{a['collisions']} ({a['trials_with_collision']} / {a['trials']})",
+        dash,
+    )
     row("Min gap (worst trial)", lambda a: fmt_num(a["min_gap_m"]["min"], "m"), dash)
     row("Min PET (worst trial)", lambda a: fmt_num(a["min_pet_s"]["min"], "s"), dash)
     return header, rows
@@ -510,8 +527,9 @@ def render_table(doc: Mapping[str, Any]) -> str:
         + markdown_table(header, rows)
         + "\n\n"
         + f"Ours: {doc['harness']} harness, scenario `{doc['scenario_name']}`, seeds {seeds}"
-        " (trial i uses seed base + i in every column); passing times are mean ± sample"
-        " standard deviation over trials. Average passing time: mean over every car and"
+        " (trial i uses seed base + i in every column); passing times are the mean over"
+        " trials [its 95 % Student-t interval]. Counts are k / N trials (the paper's"
+        f" N = {PAPER_REFERENCE['trials']}). Average passing time: mean over every car and"
         " trial. Min gap and PET: the smallest of any trial.\n"
         + f"Paper: {PAPER_REFERENCE['source']}. {PAPER_REFERENCE['note']}\n"
     )
@@ -531,15 +549,37 @@ def _columns_of(doc: Mapping[str, Any]) -> list[Column]:
 # --------------------------------------------------------------------------- figures
 
 
+LINE_STYLES: tuple[str, ...] = ("-", "--", "-.", ":")
+MARKERS: tuple[str, ...] = ("o", "s", "^", "D", "v", "P")
+"""Each car its own line style and marker besides its colour, so lines that lie on top
+of each other (or are printed in grey) stay distinguishable."""
+
+
+def _figure_legend(fig: Any, handles: Sequence[Any], ncol: int) -> None:
+    """One legend for the whole figure, below the panels, explaining every mark."""
+    fig.legend(
+        handles=list(handles),
+        loc="lower center",
+        ncol=ncol,
+        fontsize=8,
+        frameon=False,
+        bbox_to_anchor=(0.5, 0.0),
+    )
+
+
 def plot_speed_profiles(
     doc: Mapping[str, Any],
     traces: Mapping[str, Sequence[Mapping[str, VehicleTrace]]],
     scenario: Scenario,
     path: Path,
-    dpi: int = 110,
-) -> None:
+) -> list[str]:
     """Speed against position relative to the intersection centre, one panel per
-    column: each trial a thin transparent line, the binned mean a solid one."""
+    column: each trial a thin transparent line, the binned mean a thick one with the
+    car's own style and markers; one legend for the figure explains every mark.
+    Returns the files written (PNG, PDF, SVG)."""
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
+
     plt = pyplot()
     columns = _columns_of(doc)
     vehicles: list[str] = list(doc["vehicles"])
@@ -547,19 +587,31 @@ def plot_speed_profiles(
     lo, hi = PROFILE_RANGE_M
     edges = np.arange(lo, hi + PROFILE_BIN_M, PROFILE_BIN_M)
     mids = 0.5 * (edges[:-1] + edges[1:])
+    ncols = min(len(columns), 2)
+    nrows = -(-len(columns) // ncols)
     fig, axes = plt.subplots(
-        1, len(columns), figsize=(3.3 * len(columns), 3.4), sharey=True, squeeze=False
+        nrows,
+        ncols,
+        figsize=(7.0, 2.5 * nrows + 0.7),
+        sharex=True,
+        sharey=True,
+        squeeze=False,
     )
     v_max = scenario.params.v_max_mps
-    for ax, col in zip(axes[0], columns, strict=True):
+    every = max(int(len(mids) / 8), 1)
+    for i, col in enumerate(columns):
+        ax = axes[i // ncols][i % ncols]
         agg = doc["aggregates"][col.key]
         mean_pt = agg["average_passing_time_s"]["mean"]
-        ax.set_title(f"{col.title}\navg passing {fmt_num(mean_pt, 's')}", fontsize=9)
+        ax.set_title(
+            f"{col.title}\navg passing {fmt_num(mean_pt, 's')}, n = {agg['trials']}",
+            fontsize=8.5,
+        )
         c0 = crossing[vehicles[0]]
         ax.axvspan(c0.s_in - c0.center_s, c0.s_out - c0.center_s, color="0.88", lw=0)
         for x in sorted({round(c.s_stop - c.center_s, 2) for c in crossing.values()}):
-            ax.axvline(x, color="0.5", lw=0.8, ls=":")
-        ax.axhline(v_max, color="0.6", lw=0.6, ls="--")
+            ax.axvline(x, color="0.35", lw=0.8, ls=":")
+        ax.axhline(v_max, color="0.55", lw=0.7, ls="--")
         col_traces = traces.get(col.key, [])
         if not col_traces:
             ax.text(0.5, 0.5, "no trace", ha="center", va="center", transform=ax.transAxes)
@@ -572,92 +624,186 @@ def plot_speed_profiles(
                     continue
                 rel = tr.s - crossing[v].center_s
                 keep = (rel >= lo) & (rel <= hi)
-                ax.plot(rel[keep], tr.speed[keep], color=colour, lw=0.7, alpha=0.3)
+                ax.plot(rel[keep], tr.speed[keep], color=colour, lw=0.5, alpha=0.25)
                 binned.append(binned_mean(rel, tr.speed, edges))
             if binned:
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore", category=RuntimeWarning)
                     mean = np.nanmean(np.vstack(binned), axis=0)
-                # earlier cars drawn wider, so that identical means stay visible
-                lw = max(2.8 - 1.0 * k, 1.2)
-                ax.plot(mids, mean, color=colour, lw=lw, label=f"car {v}")
+                ax.plot(
+                    mids,
+                    mean,
+                    color=colour,
+                    lw=1.8,
+                    ls=LINE_STYLES[k % len(LINE_STYLES)],
+                    marker=MARKERS[k % len(MARKERS)],
+                    markevery=(k * every // max(len(vehicles), 1), every),
+                    ms=4,
+                    mfc="white",
+                )
         ax.set_xlim(lo, hi)
         ax.set_ylim(0.0, v_max * 1.12)
         ax.grid(True, lw=0.3, alpha=0.5)
-        ax.set_xlabel("position rel. to intersection centre [m]", fontsize=8)
         ax.tick_params(labelsize=8)
-    axes[0][0].set_ylabel("speed [m/s]", fontsize=9)
-    handles, labels = axes[0][0].get_legend_handles_labels()
-    if handles:
-        axes[0][0].legend(handles, labels, fontsize=8, loc="lower left")
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=dpi)
-    plt.close(fig)
+    for j in range(len(columns), nrows * ncols):
+        axes[j // ncols][j % ncols].set_visible(False)
+    for ax in axes[-1]:
+        ax.set_xlabel("car centre rel. to the intersection centre [m]", fontsize=8)
+    for row in axes:
+        row[0].set_ylabel("speed [m/s]", fontsize=9)
+    handles: list[Any] = [
+        Line2D(
+            [],
+            [],
+            color=vehicle_color(k),
+            lw=1.8,
+            ls=LINE_STYLES[k % len(LINE_STYLES)],
+            marker=MARKERS[k % len(MARKERS)],
+            mfc="white",
+            label=f"car {v}, mean per {PROFILE_BIN_M:g} m",
+        )
+        for k, v in enumerate(vehicles)
+    ]
+    handles += [
+        Line2D([], [], color="0.4", lw=0.5, alpha=0.5, label="single trial"),
+        Patch(color="0.88", label="conflict zone"),
+        Line2D([], [], color="0.35", lw=0.8, ls=":", label="front bumper on the stop line"),
+        Line2D([], [], color="0.55", lw=0.7, ls="--", label=f"V_max {v_max:.1f} m/s"),
+    ]
+    _figure_legend(fig, handles, ncol=3)
+    fig.tight_layout(rect=(0.0, 0.12 if nrows == 1 else 0.08, 1.0, 1.0))
+    return save_figure(fig, path)
 
 
-def plot_passing_times(doc: Mapping[str, Any], path: Path, dpi: int = 110) -> None:
-    """Every car's passing time in every trial, per column (box + points), with the
-    paper's mean per car as a diamond where the paper has the column."""
+def plot_passing_times(doc: Mapping[str, Any], path: Path) -> list[str]:
+    """Every car's passing time in every trial, per column (points), the mean with its
+    95 % t-interval (bar), the paper's mean (open diamond) where the paper has the
+    column; a box plot is drawn only from 10 trials up. Returns the files written."""
+    from matplotlib.lines import Line2D
+
     plt = pyplot()
     columns = _columns_of(doc)
     vehicles: list[str] = list(doc["vehicles"])
     ref = PAPER_REFERENCE["columns"]
-    fig, ax = plt.subplots(figsize=(1.9 * len(columns) + 1.2, 3.8))
+    fig, ax = plt.subplots(figsize=(7.0, 3.6))
     width = 0.8 / max(len(vehicles), 1)
     rng = np.random.default_rng(0)  # deterministic jitter
-    paper_label_done = False
     for ci, col in enumerate(columns):
         results = _column_results(doc, col.key)
         for k, v in enumerate(vehicles):
             x0 = ci - 0.4 + width * (k + 0.5)
             ys = [pt for r in results if (pt := r.vehicles[v].passing_time_s) is not None]
             colour = vehicle_color(k)
-            if ys:
+            if len(ys) >= 10:
                 ax.boxplot(
                     [ys],
                     positions=[x0],
                     widths=width * 0.7,
                     showfliers=False,
-                    medianprops={"color": colour, "lw": 1.5},
-                    boxprops={"color": colour},
-                    whiskerprops={"color": colour},
-                    capprops={"color": colour},
+                    medianprops={"color": colour, "lw": 1.0},
+                    boxprops={"color": colour, "lw": 0.7},
+                    whiskerprops={"color": colour, "lw": 0.7},
+                    capprops={"color": colour, "lw": 0.7},
                 )
-                jitter = rng.uniform(-0.12, 0.12, size=len(ys)) * width
+            if ys:
+                jitter = rng.uniform(-0.3, 0.3, size=len(ys)) * width
                 ax.scatter(
-                    x0 + jitter,
+                    x0 - 0.15 * width + jitter * 0.5,
                     ys,
-                    s=14,
+                    s=10,
                     color=colour,
-                    alpha=0.75,
+                    alpha=0.55,
+                    marker=MARKERS[k % len(MARKERS)],
                     zorder=3,
-                    label=f"car {v}" if ci == 0 else None,
+                    lw=0,
+                )
+                mean = float(np.mean(ys))
+                ci95 = t_interval95(ys)
+                yerr = None if ci95 is None else [[mean - ci95[0]], [ci95[1] - mean]]
+                ax.errorbar(
+                    [x0 + 0.25 * width],
+                    [mean],
+                    yerr=yerr,
+                    fmt=MARKERS[k % len(MARKERS)],
+                    color=colour,
+                    mfc="white",
+                    ms=5,
+                    capsize=3,
+                    lw=1.2,
+                    zorder=4,
                 )
             pref = ref.get(col.key, {}).get("passing_time_s", {}).get(v)
             if pref is not None:
                 ax.scatter(
-                    [x0],
+                    [x0 + 0.25 * width],
                     [pref],
                     marker="D",
-                    s=30,
+                    s=34,
                     facecolor="none",
                     edgecolor="black",
-                    zorder=4,
-                    label=None if paper_label_done else "paper (mean)",
+                    lw=0.9,
+                    zorder=5,
                 )
-                paper_label_done = True
     ax.set_xticks(range(len(columns)))
     ax.set_xticklabels([c.title for c in columns], fontsize=8)
     ax.set_xlim(-0.6, len(columns) - 0.4)
     ax.set_ylabel("passing time [s]", fontsize=9)
-    ax.set_title(f"Passing time per car and trial ({_plural(doc['trials'], 'trial')})", fontsize=10)
+    ax.set_title(
+        f"Passing time per car ({_plural(doc['trials'], 'trial')} per column)", fontsize=10
+    )
     ax.grid(True, axis="y", lw=0.3, alpha=0.5)
-    ax.legend(fontsize=8, loc="best")
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=dpi)
-    plt.close(fig)
+    ax.tick_params(labelsize=8)
+    handles: list[Any] = [
+        Line2D(
+            [],
+            [],
+            color=vehicle_color(k),
+            marker=MARKERS[k % len(MARKERS)],
+            ls="",
+            mfc="white",
+            label=f"car {v}: mean, 95 % CI; dots: trials",
+        )
+        for k, v in enumerate(vehicles)
+    ]
+    handles.append(
+        Line2D([], [], color="black", marker="D", mfc="none", ls="", label="paper's mean")
+    )
+    _figure_legend(fig, handles, ncol=len(handles))
+    fig.tight_layout(rect=(0.0, 0.08, 1.0, 1.0))
+    return save_figure(fig, path)
+
+
+def runs_rows(doc: Mapping[str, Any]) -> list[dict[str, Any]]:
+    """``runs.csv``'s rows: one per run, its parameters and every metric, per car too."""
+    vehicles: list[str] = doc["vehicles"]
+    rows: list[dict[str, Any]] = []
+    for col in _columns_of(doc):
+        for trial, res in enumerate(_column_results(doc, col.key)):
+            row: dict[str, Any] = {
+                "experiment": "paper",
+                "scenario": doc["scenario_name"],
+                "harness": doc["harness"],
+                "column": col.key,
+                "mode": str(col.mode),
+                "policy": str(col.policy),
+                "loss": col.loss,
+                "trial": trial,
+                "seed": res.seed,
+                "collisions": res.collisions,
+                "min_gap_m": res.min_gap_m,
+                "min_pet_s": res.min_pet_s,
+                "all_finished": res.all_finished,
+                "mean_passing_time_s": res.mean_passing_time_s,
+                "sim_s": res.sim_s,
+            }
+            for v in vehicles:
+                veh = res.vehicles[v]
+                row[f"{v}_start_s"] = res.start_times.get(v)
+                row[f"{v}_passing_time_s"] = veh.passing_time_s
+                row[f"{v}_first_through"] = veh.first_through
+                row[f"{v}_stops"] = veh.stops
+            rows.append(row)
+    return rows
 
 
 # --------------------------------------------------------------------------- report
@@ -901,10 +1047,13 @@ def render_report(doc: Mapping[str, Any], figures: Sequence[str]) -> str:
         "",
         markdown_table(header, rows),
         "",
-        f"Paper: {PAPER_REFERENCE['source']}. {PAPER_REFERENCE['note']} Ours: mean ± sample"
-        " standard deviation over trials.",
+        f"Paper: {PAPER_REFERENCE['source']}. {PAPER_REFERENCE['note']} Ours: mean over"
+        " trials [95 % Student-t interval]; counts k / N trials. Every run, one row each:"
+        " `runs.csv`.",
         "",
         "## Figures",
+        "",
+        "Each figure is also written as PDF and SVG beside the PNG.",
         "",
     ]
     if "speed_profiles.png" in figures:
@@ -912,16 +1061,16 @@ def render_report(doc: Mapping[str, Any], figures: Sequence[str]) -> str:
             "![speed profiles](speed_profiles.png)",
             "",
             "Speed against the position of the car's centre relative to the intersection"
-            " centre; thin lines: single trials, thick: the mean per 1 m bin. Grey band:"
-            " the conflict zone; dotted: where the centre is when the front bumper is on the"
-            " stop line; dashed: V_max.",
+            f" centre; thin lines: single trials, thick: the mean per {PROFILE_BIN_M:g} m bin."
+            " Grey band: the conflict zone; dotted: where the centre is when the front bumper"
+            " is on the stop line; dashed: V_max.",
             "",
         ]
     parts += [
         "![passing times](passing_times.png)",
         "",
-        "Each car's passing time in each trial (points), with box plots;"
-        " diamonds: the paper's means.",
+        "Each car's passing time in each trial (dots), the mean with its 95 % t-interval,"
+        " box plots from 10 trials up; open diamonds: the paper's means.",
         "",
         "## Why each mode behaves as it does",
         "",
@@ -1023,12 +1172,12 @@ def run_paper_experiment(
         "runs": runs,
     }
     out.mkdir(parents=True, exist_ok=True)
-    figures = ["passing_times.png"]
+    figures: list[str] = []
     with watch.phase("figures_s"):
         if any(traces.values()):
-            plot_speed_profiles(doc, traces, scenario, out / "speed_profiles.png")
-            figures.insert(0, "speed_profiles.png")
-        plot_passing_times(doc, out / "passing_times.png")
+            figures += plot_speed_profiles(doc, traces, scenario, out / "speed_profiles.png")
+        figures += plot_passing_times(doc, out / "passing_times.png")
+    write_runs_csv(out / "runs.csv", runs_rows(doc))
     if save_traces:
         for o in outcomes:
             if o.trace is not None:

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import csv
 import json
 import re
+import struct
 from pathlib import Path
 from typing import Any
 
@@ -71,11 +73,25 @@ def _number(cell: str) -> float:
 
 def test_every_artefact_is_written(first: tuple[Path, dict[str, Any]]) -> None:
     out, doc = first
-    names = ("results.json", "table.md", "REPORT.md", "speed_profiles.png", "passing_times.png")
+    names = ("results.json", "table.md", "REPORT.md", "runs.csv")
     for name in names:
         assert (out / name).stat().st_size > 0, name
-    for png in ("speed_profiles.png", "passing_times.png"):
-        assert (out / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    for fig in ("speed_profiles", "passing_times"):
+        png = (out / f"{fig}.png").read_bytes()
+        assert png[:8] == b"\x89PNG\r\n\x1a\n"
+        # 300 dpi: the pHYs chunk holds pixels per metre (300 / 0.0254 = 11811)
+        assert struct.unpack(">II", png[png.index(b"pHYs") + 4 :][:8]) == (11811, 11811)
+        assert (out / f"{fig}.pdf").read_bytes()[:5] == b"%PDF-"
+        assert b"<svg" in (out / f"{fig}.svg").read_bytes()[:2000]
+    with (out / "runs.csv").open() as fh:
+        csv_rows = list(csv.DictReader(fh))
+    assert len(csv_rows) == len(COLUMNS) * TRIALS
+    by_run = {(r["column"], int(r["seed"])): r for r in csv_rows}
+    for col in COLUMNS:
+        for run in doc["runs"][col.key]:
+            row = by_run[(col.key, run["result"]["seed"])]
+            assert int(row["collisions"]) == run["result"]["collisions"]
+            assert row["mode"] == str(col.mode)
     on_disk = json.loads((out / "results.json").read_text())
     assert on_disk == json.loads(json.dumps(doc))
     report = (out / "REPORT.md").read_text()
@@ -133,7 +149,9 @@ def test_pass_first_counts_add_up_to_the_trials(first: tuple[Path, dict[str, Any
     out, doc = first
     header, rows = _table(out / "table.md")
     for k, col in zip(_ours(header), COLUMNS, strict=True):
-        counts = {v: int(rows[f"Car {v} passes first"][k]) for v in doc["vehicles"]}
+        cells = {v: rows[f"Car {v} passes first"][k].split(" / ") for v in doc["vehicles"]}
+        assert all(int(n) == TRIALS for _, n in cells.values())  # "k / N trials"
+        counts = {v: int(c[0]) for v, c in cells.items()}
         assert sum(counts.values()) == TRIALS
         for v, n in counts.items():
             assert n == sum(
@@ -148,12 +166,14 @@ def test_table_shows_the_papers_numbers_and_safety(first: tuple[Path, dict[str, 
     assert len(paper_cells) == 3
     avg = [rows["Average passing time"][i] for i in paper_cells]
     assert avg == ["36.51 s", "37.17 s", "27.05 s"]
-    assert [rows["Car A passes first"][i] for i in paper_cells] == ["10", "6", "6"]
+    assert [rows["Car A passes first"][i] for i in paper_cells] == ["10 / 10", "6 / 10", "6 / 10"]
     assert [rows["Car B passing time"][i] for i in paper_cells] == ["41.97 s", "36.32 s", "30.18 s"]
     assert rows["Change vs stand-alone"][paper_cells[2]] == "−25.9 %"
     for k, col in zip(_ours(header), COLUMNS, strict=True):
         agg = doc["aggregates"][col.key]
-        assert int(rows["Collisions (all trials)"][k]) == agg["collisions"]
+        total, trials_with = rows["Collisions (trials with one)"][k].split(" (")
+        assert int(total) == agg["collisions"]
+        assert trials_with == f"{agg['trials_with_collision']} / {TRIALS})"
         gaps = [r["result"]["min_gap_m"] for r in doc["runs"][col.key]]
         assert _number(rows["Min gap (worst trial)"][k]) == pytest.approx(min(gaps), abs=0.006)
 
