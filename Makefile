@@ -40,6 +40,8 @@ bench: install
 	$(BIN)/crosspath bench codec --json $(OUT)/bench/codec.json
 	$(BIN)/crosspath bench rsu --json $(OUT)/bench/rsu.json
 	$(BIN)/crosspath bench sim --json $(OUT)/bench/sim.json
+	$(BIN)/crosspath bench latency --json $(OUT)/bench/latency.json
+	$(BIN)/crosspath bench security --json $(OUT)/bench/security.json --flood-duration 60
 
 demo: install
 	$(BIN)/crosspath demo

@@ -167,8 +167,12 @@ def run_daemons(
     start_delay_s: float = 1.0,
     log_level: str = "INFO",
     say: Callable[[str], None] | None = None,
+    cars_per_process: int | None = None,
+    insecure: bool = False,
 ) -> RunResult:
-    """One run with real daemons (``crosspath up``): monitor, RSUs and cars as OS processes.
+    """One run with real daemons (``crosspath up``): monitor, RSUs and cars as OS processes
+    (``cars_per_process`` cars to a process, each its own Zenoh node; None: the launcher's
+    default, ``services.supervise.hosts``; flows are expanded for ``seed``).
 
     ``speed`` run seconds per wall second (0 < speed <= 1000), ``timeout`` [wall s] for
     the whole run (default ``max_sim_s / speed + 60``), ``run_dir`` where the daemons'
@@ -176,7 +180,8 @@ def run_daemons(
     ``start_delay_s`` wall seconds from the start message to run time 0, ``log_level``
     the daemons'. ``say`` gets one line when the daemons start. The trace comes from the
     monitor: every car's reported truth per physics step, ``accel`` derived from the
-    speed and ``detail`` empty (the cars do not report them). Raises ``ValueError`` for
+    speed and ``detail`` empty (the cars do not report them). V2X is signed with a
+    throw-away authority in the run dir unless ``insecure``. Raises ``ValueError`` for
     bad arguments, :class:`DaemonRunError` when the run fails, :class:`RunInterrupted` on
     a signal.
     """
@@ -197,6 +202,8 @@ def run_daemons(
         start_delay_s=start_delay_s,
         log_level=log_level,
         trace=bool(trace),
+        cars_per_process=cars_per_process,
+        insecure=insecure,
     )
     if say is not None:
         say(f"run {up.run_id}: {len(up.launcher.commands)} processes, logs in {up.run_dir}")

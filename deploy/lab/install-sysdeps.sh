@@ -6,9 +6,13 @@ need=()
 command -v nft >/dev/null 2>&1 || need+=(nftables)
 command -v ip  >/dev/null 2>&1 || need+=(iproute2)
 command -v tc  >/dev/null 2>&1 || need+=(iproute2)
+# the browser test of `crosspath view` (tests/view) loads the page in headless Chromium
+command -v chromium >/dev/null 2>&1 || need+=(chromium)
+# tests/deploy checks the units with `systemd-analyze verify` and `security` (only the tool)
+command -v systemd-analyze >/dev/null 2>&1 || need+=(systemd)
 [ ${#need[@]} -eq 0 ] && exit 0
 if [ "$(id -u)" -ne 0 ]; then
-  echo "crosspath lab needs: ${need[*]} (run as root, or install them yourself)" >&2
+  echo "crosspath lab and view tests need: ${need[*]} (run as root, or install them yourself)" >&2
   if [ -n "${CI:-}" ]; then exit 1; fi
   exit 0
 fi

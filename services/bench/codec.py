@@ -26,8 +26,17 @@ them) goes message → bytes → message in every format, in the same run:
 
 Every format includes building its dict from the message and the message
 from its dict (numpy arrays and all), so all do the same job. Times are
-medians over ``repeat`` rounds of ``number`` calls each (``time.perf_counter``);
-the formats take turns inside every round so they share the machine's state.
+medians over ``repeat`` rounds of ``number`` calls each of the process's CPU
+time (``time.process_time``: on a shared 2-core machine wall time also counts
+other processes' turns); the formats take turns inside every round so they
+share the machine's state. ``encode_decode_us_p50`` is crosspath's median
+round, ``speedup_vs_json`` the ratio of medians against compact JSON.
+
+``path_sizes_bytes``: crosspath's size of three realistic 120-point future
+paths, since the delta widths depend on the direction of travel: along an
+axis (the sample above: y never changes), diagonal (the same motion at 45°:
+both x and y change) and turning (a left turn through a 4-way intersection,
+12 m/s slowing to 7 m/s on a 15 m radius arc, then straight on).
 """
 
 from __future__ import annotations
@@ -60,6 +69,7 @@ from protocol import (
     encode,
     max_points,
 )
+from protocol.messages import FloatArray
 from services.edge.args import output_file, positive_int
 from services.edge.progress import Ticker
 
@@ -71,6 +81,15 @@ FORMATS: dict[str, str] = {
     "msgpack": "msgpack, points as [x,y,t] float lists",
 }
 """Format name -> what it is."""
+
+TARGET_US_P50 = 8.0
+"""Issue 14: encode + decode of a 120-point future path [µs]."""
+
+TARGET_SPEEDUP_VS_JSON = 25.0
+"""Issue 14: at least this many times faster than compact stdlib JSON."""
+
+TARGET_PATH_BYTES = 450
+"""Issue 14: most bytes of a 120-point future path on any realistic path."""
 
 PAPER_JSON_BYTES = 60_000
 """What the paper reports for one 120-point path (§V, 60 KB)."""
@@ -97,6 +116,53 @@ def sample_future_path(points: int = 120, sender: str = "car-a") -> FuturePath:
         Mode.AUTO,
         path,
     )
+
+
+def _path_message(points: FloatArray) -> FuturePath:
+    now = float(points[0, 2])
+    (x0, y0), (x1, y1) = points[0, :2], points[1, :2]
+    return FuturePath(
+        Header("car-a", 7, round(now * 1e6)),
+        float(x0),
+        float(y0),
+        12.0,
+        math.atan2(y1 - y0, x1 - x0),
+        4.5,
+        1.8,
+        Mode.AUTO,
+        points,
+    )
+
+
+def diagonal_future_path(points: int = 120) -> FuturePath:
+    """The sample path's motion at 45°: both coordinates change at every point."""
+    axis = sample_future_path(points).points
+    s = axis[:, 0] - axis[0, 0]
+    c = math.sqrt(0.5)
+    return _path_message(np.column_stack([-40.0 + c * s, -45.0 + c * s, axis[:, 2]]))
+
+
+def turning_future_path(points: int = 120) -> FuturePath:
+    """A left turn: 12 m/s slowing to 7 m/s on a 15 m radius quarter circle, then straight."""
+    t = np.arange(points) * SPACING_S
+    v = np.maximum(12.0 - 2.0 * t, 7.0)
+    s = np.concatenate([[0.0], np.cumsum((v[1:] + v[:-1]) / 2 * SPACING_S)])
+    radius, approach = 15.0, 25.0
+    arc = math.pi / 2 * radius
+    on_arc = np.clip(s - approach, 0.0, arc) / radius  # angle turned [rad]
+    x = np.where(s < approach, s - approach, radius * np.sin(on_arc))
+    y = np.where(s < approach, 0.0, radius * (1.0 - np.cos(on_arc)))
+    after = np.maximum(s - approach - arc, 0.0)  # straight on, northbound
+    x, y = x + 3.0, y - 1.75 + after
+    return _path_message(np.column_stack([x, y, 12.345 + t]))
+
+
+PATHS: dict[str, Callable[[int], FuturePath]] = {
+    "axis": sample_future_path,
+    "diagonal": diagonal_future_path,
+    "turning": turning_future_path,
+}
+"""Realistic future paths whose sizes the README quotes."""
 
 
 def sample_messages(points: int = 120) -> dict[str, Message]:
@@ -287,10 +353,12 @@ CODECS: dict[str, tuple[Callable[[FuturePath], bytes], Callable[[bytes], Any]]] 
 
 
 def _time_per_call(fn: Callable[[Any], Any], arg: Any, number: int) -> float:
-    start = time.perf_counter()
+    """CPU seconds per call of ``fn(arg)`` over ``number`` calls."""
+    clock = time.process_time
+    start = clock()
     for _ in range(number):
         fn(arg)
-    return (time.perf_counter() - start) / number
+    return (clock() - start) / number
 
 
 def measure(points: int = 120, repeat: int = 25, number: int = 200) -> dict[str, Any]:
@@ -316,6 +384,9 @@ def measure(points: int = 120, repeat: int = 25, number: int = 200) -> dict[str,
         for name in CODECS
     }
     sizes = {name: len(p) for name, p in payloads.items()}
+    path_sizes = {name: len(encode(make(points))) for name, make in PATHS.items()}
+    p50 = both_us["crosspath"]
+    speedup = both_us["json"] / p50
     kinds = {
         kind: {"bytes": len(encode(m)), "max_points": max_points(m.kind)}
         for kind, m in sample_messages(points).items()
@@ -329,7 +400,8 @@ def measure(points: int = 120, repeat: int = 25, number: int = 200) -> dict[str,
         "encode_decode_us": both_us,
         "encode_us": encode_us,
         "decode_us": decode_us,
-        "speedup_vs_json": both_us["json"] / both_us["crosspath"],
+        "encode_decode_us_p50": p50,
+        "speedup_vs_json": speedup,
         "speedup_vs_json_arrays": both_us["json_arrays"] / both_us["crosspath"],
         "speedup_vs_msgpack": both_us["msgpack"] / both_us["crosspath"],
         "size_ratio_vs_paper_json": sizes["paper_json"] / sizes["crosspath"],
@@ -337,6 +409,17 @@ def measure(points: int = 120, repeat: int = 25, number: int = 200) -> dict[str,
         "max_datagram": MAX_DATAGRAM,
         "kinds": kinds,
         "max_points": {k.name.lower(): max_points(k) for k in Kind},
+        "path_sizes_bytes": path_sizes,
+        "targets": {
+            "encode_decode_us_p50": TARGET_US_P50,
+            "speedup_vs_json": TARGET_SPEEDUP_VS_JSON,
+            "path_bytes": TARGET_PATH_BYTES,
+            "met": {
+                "encode_decode_us_p50": p50 <= TARGET_US_P50,
+                "speedup_vs_json": speedup >= TARGET_SPEEDUP_VS_JSON,
+                "path_bytes": max(path_sizes.values()) <= TARGET_PATH_BYTES,
+            },
+        },
     }
 
 
@@ -363,16 +446,26 @@ def run(args: argparse.Namespace) -> int:
     """Measure and print; a status line on stderr while it runs (on a terminal only)."""
     with Ticker("crosspath bench codec", lambda: f"{len(FORMATS)} formats"):
         result = measure(args.points, repeat=args.repeat, number=args.number)
-    print(f"future path, {result['points']} points; median of {args.repeat} x {args.number} calls")
+    print(
+        f"future path, {result['points']} points; median of {args.repeat} x {args.number} calls "
+        "(CPU time)"
+    )
     print(f"{'format':<12} {'bytes':>8} {'enc+dec µs':>11} {'vs crosspath':>13}")
     ours = result["encode_decode_us"]["crosspath"]
     for name in FORMATS:
         us = result["encode_decode_us"][name]
         print(f"{name:<12} {result['sizes_bytes'][name]:>8} {us:>11.1f} {us / ours:>12.1f}x")
     print(
+        f"crosspath encode+decode p50 {result['encode_decode_us_p50']:.1f} µs; "
         f"speedup vs compact JSON: {result['speedup_vs_json']:.1f}x; "
         f"size ratio vs paper JSON: {result['size_ratio_vs_paper_json']:.0f}x"
     )
+    print(
+        f"{result['points']}-point future path: "
+        + ", ".join(f"{k} {v} B" for k, v in result["path_sizes_bytes"].items())
+    )
+    for name, ok in result["targets"]["met"].items():
+        print(f"target {name}: {'met' if ok else 'NOT met'}")
     print(
         "per kind: "
         + ", ".join(

@@ -1,20 +1,40 @@
 """``crosspath bench rsu``: cost of one received future path at the RSU, against brute force.
 
-Scene: a grid of intersections spread over a few kilometres (6 x 6, 500 m
-apart), cars on random approach lanes (right-hand traffic, 3.5 m lanes) up to
-200 m before an intersection, at random speeds up to ``V_max``, each with a
-straight 120-point future path over 10 s through its intersection. One RSU
-(coverage stretched over the whole grid, so that every car is in its table)
-first receives every car's future path; then, for each measured update, a
-future path from a new car on a random lane goes through
-``RsuCore.on_message`` (table update, indexed conflict check, mode decision,
-and any initiation and coordinated path it causes), and the car is removed
-again so that the table keeps its size.
+Two layouts (issue 14), each a list of table sizes:
+
+``one-intersection``
+    the case that matters, a jam: every car on a random approach lane (right-hand
+    traffic, 3.5 m lanes) of one 4-way intersection, 5-200 m before its turn, at a
+    random speed up to ``V_max``, going straight (half of them) or turning left
+    (8 m radius) or right (5 m radius), a 120-point future path over 10 s.
+``city``
+    the same cars spread over a grid of 50 intersections (10 x 5, 500 m apart),
+    going straight; one RSU whose coverage is stretched over the whole grid so
+    that every car is in its table.
+
+The RSU first receives every car's future path while it still only listens
+(``listen_s``: table updates, no decisions; deciding for a jam car by car would
+take minutes at 1000 cars); then, after its listening period, for each measured
+update (after ``_WARM_UP`` unmeasured ones),
+a future path from a new car of the same layout goes through
+``RsuCore.on_message`` (table update, indexed conflict check, mode decision, and
+any initiation and coordinated path it causes), and the car is removed again so
+that the table keeps its size. Times are this process's CPU time per update
+(``process_time_ns``: on a shared 2-core machine wall time also counts the other
+processes' turns, eight times the CPU time in one run under load): p50 and p99.
 
 Baseline, in the same run on the same paths: ``ReservationTable.naive_conflicts``
 (every point pair of every entry, vectorised per entry), i.e. the conflict
 check alone without the index. ``speedup_vs_naive`` is the ratio of medians
 (naive check / full update): conservative, the update does more than the check.
+
+``bytes_per_car``: what the RSU keeps per car, by ``tracemalloc``: the memory
+still allocated after the second half of the cars was received (the messages
+themselves dropped) minus that after the first half, over the second half's
+cars, so that the RSU's fixed allocations do not count.
+
+This only measures: the RSU is not tuned here (issue 14 asks for that later);
+``targets.met`` says where it stands against the issue's targets.
 """
 
 from __future__ import annotations
@@ -23,26 +43,48 @@ import argparse
 import json
 import math
 import time
+import tracemalloc
 from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 
-from protocol.messages import FuturePath, Header, Mode
+from protocol.messages import FloatArray, FuturePath, Header, Mode
 from services.edge.args import non_negative_int, output_file, positive_int
 from services.edge.progress import Ticker
 from services.rsu.config import RsuConfig
 from services.rsu.core import RsuCore
 
 V_MAX = 50 / 3.6
-GRID = 6
+GRID = (10, 5)
 SPACING_M = 500.0
+LAYOUTS = ("one-intersection", "city")
+TURN_RADIUS_M = {"left": 8.0, "right": 5.0}
+DEFAULT_CASES: tuple[tuple[str, int], ...] = (
+    ("one-intersection", 10),
+    ("one-intersection", 100),
+    ("one-intersection", 200),
+    ("one-intersection", 1000),
+    ("city", 1000),
+)
 LANE_OFFSET_M = 1.75
 ZONE_HALF_M = 3.5
 POINTS = 120
 HORIZON_S = 10.0
-TARGET_SPEEDUP_AT_1000 = 20.0
-TARGET_P99_US_AT_100 = 1000.0
+_WARM_UP = 5
+"""Unmeasured updates before the measured ones (the first decisions after listening)."""
+
+_LISTEN_S = 0.1
+"""The RSU only listens this long after its first input [s]: while the table fills."""
+
+TARGETS: dict[str, float] = {
+    "us_per_update_p50_at_200": 250.0,
+    "us_per_update_p99_at_200": 1000.0,
+    "speedup_vs_naive_at_200": 10.0,
+    "speedup_vs_naive_at_1000": 20.0,
+    "bytes_per_car": 4096.0,
+}
+"""Issue 14's targets, all for the one-intersection layout."""
 
 # approach directions: heading, lane offset direction (right-hand traffic)
 _APPROACHES = (
@@ -57,10 +99,8 @@ def _centre(i: int, j: int) -> tuple[float, float]:
     return (i * SPACING_M, j * SPACING_M)
 
 
-def _config() -> RsuConfig:
-    mid = (GRID - 1) / 2 * SPACING_M
-    c = _centre(GRID // 2, GRID // 2)
-    zone = np.array(
+def _zone(c: tuple[float, float]) -> FloatArray:
+    return np.array(
         [
             [c[0] - ZONE_HALF_M, c[1] - ZONE_HALF_M],
             [c[0] + ZONE_HALF_M, c[1] - ZONE_HALF_M],
@@ -68,11 +108,59 @@ def _config() -> RsuConfig:
             [c[0] - ZONE_HALF_M, c[1] + ZONE_HALF_M],
         ]
     )
-    return RsuConfig("bench-rsu", "bench", (mid, mid), zone, coverage_m=GRID * SPACING_M * 2)
+
+
+def _config(layout: str) -> RsuConfig:
+    if layout == "one-intersection":
+        return RsuConfig("bench-rsu", "bench", (0.0, 0.0), _zone((0.0, 0.0)), coverage_m=400.0)
+    mid = ((GRID[0] - 1) / 2 * SPACING_M, (GRID[1] - 1) / 2 * SPACING_M)
+    c = _centre(GRID[0] // 2, GRID[1] // 2)
+    span = max(GRID) * SPACING_M * 2
+    return RsuConfig("bench-rsu", "bench", mid, _zone(c), coverage_m=span)
+
+
+def _local_path(s: FloatArray, back: float, turn: str) -> tuple[FloatArray, FloatArray]:
+    """x, y [m] at arc lengths ``s`` of an eastbound car on y = -1.75 m turning at (0, 0).
+
+    The car starts ``back`` metres before the start of its turn (before the centre
+    when going straight); a left turn ends northbound on x = 1.75 m, a right turn
+    southbound on x = -1.75 m (right-hand traffic).
+    """
+    lane = LANE_OFFSET_M
+    if turn == "straight":
+        return s - back, np.full_like(s, -lane)
+    radius = TURN_RADIUS_M[turn]
+    arc = math.pi / 2 * radius
+    angle = np.clip(s - back, 0.0, arc) / radius
+    after = np.maximum(s - back - arc, 0.0)
+    before = np.minimum(s - back, 0.0)
+    if turn == "left":
+        x0, sign = lane - radius, 1.0
+    else:
+        x0, sign = -lane - radius, -1.0
+    x = x0 + before + radius * np.sin(angle)
+    y = -lane + sign * (radius * (1.0 - np.cos(angle)) + after)
+    return x, y
+
+
+def _intersection_car(rng: np.random.Generator, vehicle: str, now: float, seq: int) -> FuturePath:
+    """A car of the one-intersection layout (module docstring)."""
+    heading = _APPROACHES[int(rng.integers(4))][0]
+    turn = ("straight", "straight", "left", "right")[int(rng.integers(4))]
+    back = float(rng.uniform(5.0, 200.0))
+    speed = float(rng.uniform(3.0, V_MAX))
+    t = now + np.linspace(0.0, HORIZON_S, POINTS)
+    lx, ly = _local_path(speed * (t - now), back, turn)
+    cos, sin = math.cos(heading), math.sin(heading)
+    x, y = cos * lx - sin * ly, sin * lx + cos * ly
+    points = np.column_stack([x, y, t])
+    header = Header(vehicle, seq, round(now * 1e6))
+    return FuturePath(header, float(x[0]), float(y[0]), speed, heading, 4.5, 1.8, Mode.AUTO, points)
 
 
 def _random_car(rng: np.random.Generator, vehicle: str, now: float, seq: int) -> FuturePath:
-    i, j = int(rng.integers(GRID)), int(rng.integers(GRID))
+    """A car of the city layout (module docstring)."""
+    i, j = int(rng.integers(GRID[0])), int(rng.integers(GRID[1]))
     heading, (ox, oy) = _APPROACHES[int(rng.integers(4))]
     cx, cy = _centre(i, j)
     back = float(rng.uniform(5.0, 200.0))
@@ -91,22 +179,40 @@ def _percentile(samples: Sequence[float], q: float) -> float:
     return float(np.percentile(np.asarray(samples, dtype=np.float64), q))
 
 
-def measure_one(cars: int, updates: int, naive_updates: int, seed: int) -> dict[str, Any]:
-    """One table size: per-update cost through ``on_message`` and of the naive check [µs]."""
+def measure_one(
+    cars: int, updates: int, naive_updates: int, seed: int, layout: str = "one-intersection"
+) -> dict[str, Any]:
+    """One layout and table size: cost per update through ``on_message`` and of the naive
+    check [µs], and the RSU's memory per car [bytes]."""
+    if layout not in LAYOUTS:
+        raise ValueError(f"layout must be one of {LAYOUTS}, got {layout!r}")
+    make = _intersection_car if layout == "one-intersection" else _random_car
     rng = np.random.default_rng(seed)
-    core = RsuCore(_config(), listen_s=0.0)  # decide from the first path: that is measured
-    for k in range(cars):
-        core.on_message(0.0, _random_car(rng, f"car-{k}", 0.0, 1))
-    now = 0.2  # every entry is still live (expiry 0.5 s)
-    probes = [_random_car(rng, "probe", now, 1 + k) for k in range(updates)]
-    for probe in probes[: min(20, updates)]:  # warm-up
+    tracing = tracemalloc.is_tracing()
+    if not tracing:
+        tracemalloc.start()
+    # filled while still listening (table updates only): deciding for a jam car by car
+    # would take minutes at 1000 cars; the measured updates come after the listening
+    core = RsuCore(_config(layout), listen_s=_LISTEN_S)
+    half = cars // 2
+    for k in range(half):
+        core.on_message(0.0, make(rng, f"car-{k}", 0.0, 1))
+    at_half = tracemalloc.get_traced_memory()[0]
+    for k in range(half, cars):
+        core.on_message(0.0, make(rng, f"car-{k}", 0.0, 1))
+    kept = tracemalloc.get_traced_memory()[0] - at_half
+    if not tracing:
+        tracemalloc.stop()
+    now = 0.2  # listening is over; every entry is still live (expiry 0.5 s)
+    probes = [make(rng, "probe", now, 1 + k) for k in range(updates)]
+    for probe in probes[: min(_WARM_UP, updates)]:
         core.on_message(now, probe)
         core.forget("probe")
     full: list[float] = []
     query: list[float] = []
     naive: list[float] = []
     outgoing = 0
-    clock = time.perf_counter_ns
+    clock = time.process_time_ns  # CPU time: on a shared machine wall time counts others' turns
     for probe in probes:
         t0 = clock()
         out = core.on_message(now, probe)
@@ -125,6 +231,7 @@ def measure_one(cars: int, updates: int, naive_updates: int, seed: int) -> dict[
     naive_p50 = _percentile(naive, 50)
     modes = core.modes().values()
     return {
+        "layout": layout,
         "cars": cars,
         "table_size": len(core.table),
         "updates": len(full),
@@ -139,41 +246,57 @@ def measure_one(cars: int, updates: int, naive_updates: int, seed: int) -> dict[
         "query_speedup_vs_naive": round(naive_p50 / _percentile(query, 50), 2),
         "messages_per_update": round(outgoing / len(full), 3),
         "coordinated_in_table": sum(1 for m in modes if m != Mode.AUTO),
+        "bytes_per_car": round(kept / (cars - half)) if cars - half else None,
     }
 
 
 def measure(
-    cars: Sequence[int] = (10, 100, 1000),
-    updates: int = 500,
-    naive_updates: int = 50,
+    cases: Sequence[tuple[str, int]] = DEFAULT_CASES,
+    updates: int = 200,
+    naive_updates: int = 20,
     seed: int = 1,
 ) -> dict[str, Any]:
-    """Run every table size; the JSON document ``bench rsu`` writes."""
-    if updates < 1 or naive_updates < 1 or any(n < 0 for n in cars):
+    """Run every (layout, cars) case; the JSON document ``bench rsu`` writes.
+
+    Tables of 1000 cars or more get a fifth of ``updates`` (at least 20): one update
+    costs up to a tenth of a second there.
+    """
+    if updates < 1 or naive_updates < 1 or any(n < 0 for _, n in cases):
         raise ValueError("updates and naive_updates must be >= 1, car counts >= 0")
-    results = [measure_one(n, updates, naive_updates, seed + i) for i, n in enumerate(cars)]
-    by_cars = {r["cars"]: r for r in results}
+    results = []
+    for i, (layout, n) in enumerate(cases):
+        k = updates if n < 1000 else max(min(updates, 20), updates // 5)
+        results.append(measure_one(n, k, min(naive_updates, k), seed + i, layout))
+    at = {r["cars"]: r for r in results if r["layout"] == "one-intersection"}
     met: dict[str, bool] = {}
-    if 1000 in by_cars:
-        met["speedup_vs_naive_at_1000"] = (
-            by_cars[1000]["speedup_vs_naive"] or 0.0
-        ) >= TARGET_SPEEDUP_AT_1000
-    if 100 in by_cars:
-        met["p99_at_100"] = by_cars[100]["us_per_update_p99"] <= TARGET_P99_US_AT_100
+    if 200 in at:
+        met["us_per_update_p50_at_200"] = (
+            at[200]["us_per_update_p50"] <= TARGETS["us_per_update_p50_at_200"]
+        )
+        met["us_per_update_p99_at_200"] = (
+            at[200]["us_per_update_p99"] <= TARGETS["us_per_update_p99_at_200"]
+        )
+        met["speedup_vs_naive_at_200"] = (at[200]["speedup_vs_naive"] or 0.0) >= TARGETS[
+            "speedup_vs_naive_at_200"
+        ]
+    if 1000 in at:
+        met["speedup_vs_naive_at_1000"] = (at[1000]["speedup_vs_naive"] or 0.0) >= TARGETS[
+            "speedup_vs_naive_at_1000"
+        ]
+    per_car = [r["bytes_per_car"] for r in at.values() if r["cars"] >= 100]
+    if per_car:
+        met["bytes_per_car"] = max(per_car) <= TARGETS["bytes_per_car"]
     return {
         "bench": "rsu",
         "scene": {
-            "intersections": GRID * GRID,
+            "layouts": list(LAYOUTS),
+            "city_intersections": GRID[0] * GRID[1],
             "spacing_m": SPACING_M,
             "points_per_path": POINTS,
             "horizon_s": HORIZON_S,
         },
-        "targets": {
-            "speedup_vs_naive_at_1000": TARGET_SPEEDUP_AT_1000,
-            "us_per_update_p99_at_100": TARGET_P99_US_AT_100,
-            "met": met,
-        },
-        "results": results,
+        "targets": {**TARGETS, "met": met},
+        "cases": results,
     }
 
 
@@ -184,17 +307,25 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "--cars",
         metavar="N",
         type=non_negative_int,
-        nargs="+",
-        default=[10, 100, 1000],
-        help="table sizes to measure",
+        nargs="*",
+        default=[n for layout, n in DEFAULT_CASES if layout == "one-intersection"],
+        help="table sizes of the one-intersection layout",
     )
     parser.add_argument(
-        "--updates", type=positive_int, default=500, help="measured updates per size"
+        "--city-cars",
+        metavar="N",
+        type=non_negative_int,
+        nargs="*",
+        default=[n for layout, n in DEFAULT_CASES if layout == "city"],
+        help="table sizes of the city layout (50 intersections)",
+    )
+    parser.add_argument(
+        "--updates", type=positive_int, default=200, help="measured updates per size"
     )
     parser.add_argument(
         "--naive-updates",
         type=positive_int,
-        default=50,
+        default=20,
         help="naive checks per size (they are slow)",
     )
     parser.add_argument(
@@ -204,17 +335,20 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Measure and print; a status line on stderr while it runs (on a terminal only)."""
-    sizes = " ".join(str(n) for n in args.cars)
-    with Ticker("crosspath bench rsu", lambda: f"tables of {sizes} cars"):
-        doc = measure(args.cars, args.updates, args.naive_updates, args.seed)
+    cases = [("one-intersection", n) for n in args.cars] + [("city", n) for n in args.city_cars]
+    label = ", ".join(f"{layout} {n}" for layout, n in cases)
+    with Ticker("crosspath bench rsu", lambda: label):
+        doc = measure(cases, args.updates, args.naive_updates, args.seed)
     print(
-        f"{'cars':>6} {'p50 µs':>9} {'p99 µs':>9} {'query µs':>9} {'naive µs':>10} {'speedup':>8}"
+        f"{'layout':<17} {'cars':>6} {'p50 µs':>9} {'p99 µs':>9} {'query µs':>9} "
+        f"{'naive µs':>10} {'speedup':>8} {'B/car':>7}"
     )
-    for r in doc["results"]:
+    for r in doc["cases"]:
         print(
-            f"{r['cars']:>6} {r['us_per_update_p50']:>9.1f} {r['us_per_update_p99']:>9.1f} "
-            f"{r['query_us_p50']:>9.1f} {r['naive_us_per_update_p50']:>10.1f} "
-            f"{r['speedup_vs_naive']:>7.1f}x"
+            f"{r['layout']:<17} {r['cars']:>6} {r['us_per_update_p50']:>9.1f} "
+            f"{r['us_per_update_p99']:>9.1f} {r['query_us_p50']:>9.1f} "
+            f"{r['naive_us_per_update_p50']:>10.1f} {r['speedup_vs_naive']:>7.1f}x "
+            f"{r['bytes_per_car'] or 0:>7}"
         )
     for name, ok in doc["targets"]["met"].items():
         print(f"target {name}: {'met' if ok else 'NOT met'}")

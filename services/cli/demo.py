@@ -52,6 +52,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
         choices=[m.value for m in RunMode],
         help="the modes to run, in this order",
     )
+    parser.add_argument(
+        "--insecure",
+        action="store_true",
+        help="unsigned V2X, for comparison only (default: signed, a new authority per run)",
+    )
 
 
 def _cell(value: float | None, unit: str = "") -> str:
@@ -102,6 +107,13 @@ def run(args: argparse.Namespace) -> int:
 
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
+    if args.insecure:
+        print(
+            "crosspath demo: WARNING --insecure: V2X is neither signed nor verified "
+            "(comparison only)",
+            file=sys.stderr,
+            flush=True,
+        )
     results: dict[str, RunResult] = {}
     for mode in args.modes:
         print(f"== crosspath demo: {mode} (real daemons over Zenoh) ==", flush=True)
@@ -115,6 +127,7 @@ def run(args: argparse.Namespace) -> int:
                 speed=args.speed,
                 run_dir=out / mode,
                 say=lambda line: print(f"crosspath demo: {line}", flush=True),
+                insecure=args.insecure,
             )
         except DaemonRunError as exc:
             print(f"crosspath demo: the {mode} run failed: {exc}", file=sys.stderr)

@@ -31,12 +31,15 @@ and sends what it says. One run, step by step:
    still counts as the truth of its step. Each actor's stats carry
    ``late_ticks``, the ticks its control loop ran more than one period behind the
    run clock (``services.edge.shell``); any makes the run ``degraded`` too.
-4. **End.** When every car stands at its goal (``car.all_at_goal``, as the harness) or
+4. **End.** When every car has left the world at its goal (its ``left`` truth report;
+   as the harness, cars are inserted and removed: ``services.sim.truth``) or
    run time reaches ``max_sim_s`` (the scenario's unless configured), it
    publishes :class:`~services.edge.plumbing.StopRun`, waits up to
    ``stats_wait_s`` for every actor's final stats report, and builds the run
    result of DESIGN.md (a ``services.model.results.RunResult``, ``harness``
-   ``"daemons"``, its provenance's channel ``zenoh``) with the ``network`` section
+   ``"daemons"``, its provenance's channel ``zenoh``, per-car ``delay_s`` and
+   ``insertion_delay_s`` and the ``summary``, by the harness's metrics code) with the
+   ``network`` section
    (:func:`network_summary`), writes it as JSON to ``json_out`` if set, prints it
    as tables, and exits 0.
 
@@ -87,7 +90,8 @@ reservation table, ``services.daemons.rsu``), and ``epoch_unix``.
 latencies are one-way in *wall* milliseconds (the daemons divide run-time
 latency by the speed). Expected receivers: a future path by every other car
 and every RSU, an autonomous path and a command by one node, a beacon by every
-car.
+car; with cars in the world only between insertion and removal, "every car" is
+the cars in the world, averaged over the run (``TruthSteps.expected_receivers``).
 """
 
 from __future__ import annotations
@@ -134,7 +138,7 @@ from services.model.results import ChannelParams, NetworkSection, Origin, RunRes
 from services.model.scenario import Scenario, ScenarioError, load_scenario
 from services.model.types import Policy, RunMode
 from services.sim.metrics import RunMetrics
-from services.sim.results import provenance, run_result
+from services.sim.results import provenance, run_result, run_summary
 from services.sim.truth import (
     START_REPEAT_S,
     TRACE_FIELDS,
@@ -233,14 +237,21 @@ def expected_receivers(n_vehicles: int, n_rsus: int) -> dict[str, int]:
 
 
 def network_summary(
-    snapshots: list[Mapping[str, Any]], n_vehicles: int, n_rsus: int, sim_s: float
+    snapshots: list[Mapping[str, Any]],
+    n_vehicles: int,
+    n_rsus: int,
+    sim_s: float,
+    receivers: Mapping[str, float] | None = None,
 ) -> dict[str, Any]:
-    """The ``network`` section: :func:`stats.network_section` per stream plus the total."""
+    """The ``network`` section: :func:`stats.network_section` per stream plus the total.
+    ``receivers``: expected receivers per stream (default :func:`expected_receivers`;
+    a run with insertion and removal passes ``TruthSteps.expected_receivers``)."""
     if not snapshots or not (math.isfinite(sim_s) and sim_s > 0.0):
         return {"total_kbps_per_vehicle": 0.0}
-    section: dict[str, Any] = dict(
-        network_section(snapshots, n_vehicles, sim_s, expected_receivers(n_vehicles, n_rsus))
+    expect: Mapping[str, float] = (
+        receivers if receivers is not None else expected_receivers(n_vehicles, n_rsus)
     )
+    section: dict[str, Any] = dict(network_section(snapshots, n_vehicles, sim_s, expect))
     total = sum(float(entry["kbps_per_vehicle"]) for entry in section.values())
     section["total_kbps_per_vehicle"] = total
     return section
@@ -300,6 +311,7 @@ class MonitorService(DaemonBase[MonitorConfig]):
         self.vehicles = tuple(v.id for v in scenario.vehicles)
         self.rsus = tuple(r.id for r in scenario.rsus) if cfg.mode is RunMode.RSU else ()
         self.expected = frozenset(self.vehicles + self.rsus)
+        self.shell.actors = self.expected | {self.node}
         self.max_sim_s = cfg.max_sim_s if cfg.max_sim_s is not None else scenario.params.max_sim_s
         self.may_crash = frozenset(cfg.expect_crash)
         unknown = self.may_crash - self.expected
@@ -319,6 +331,7 @@ class MonitorService(DaemonBase[MonitorConfig]):
             stats_wait_s=cfg.stats_wait_s,
             may_crash=self.may_crash,
             trace=cfg.trace,
+            start_times=scenario.draw_start_times(cfg.seed),
         )
         try:
             self.core = MonitorCore(scenario, rules)
@@ -336,6 +349,8 @@ class MonitorService(DaemonBase[MonitorConfig]):
         self.start: StartRun | None = None
         self.result: RunResult | None = None
         self.exit_code = 0
+        self.veto: str | None = None
+        """Why a run the core saw through still failed (:meth:`unheard_rsus`)."""
         self._start_payload = b""
         self._wake = asyncio.Event()
         self._halt_reason = "stopped by a signal"
@@ -345,7 +360,33 @@ class MonitorService(DaemonBase[MonitorConfig]):
     @property
     def failure(self) -> str | None:
         """Why the run failed, if it did."""
-        return self.core.failure
+        return self.core.failure or self.veto
+
+    def unheard_rsus(self) -> list[str]:
+        """RSUs of this ``rsu``-mode run that no car reported hearing (``rsus_heard`` in
+        the cars' stats, ``services.daemons.vehicle``).
+
+        Issue 13: a liveliness token and forged stats for ``rsu1`` made the monitor run
+        an rsu-mode run with no RSU at all and report success. Signed stats refuse the
+        forgery; this check also holds without signatures (``--insecure``) and when an
+        RSU's stats are genuine but nothing it sent reached a car. Decision: such a run
+        fails (an rsu-mode result without an RSU would be a wrong result, not a
+        degraded one); an RSU that may crash (``expect_crash``) is not required, and
+        unless some car reports ``rsus_heard`` and received V2X at all (a car loop too
+        overloaded to receive anything hears nobody) there is nothing to check."""
+        heard: set[str] = set()
+        counted = False
+        for vid in self.vehicles:
+            report = self.reports.get(vid)
+            if report is None:
+                continue
+            got = report.snapshot.get("rsus_heard")
+            if isinstance(got, Mapping):
+                heard.update(k for k, n in got.items() if isinstance(n, int) and n > 0)
+                counted = counted or _v2x_totals(report.snapshot)["msgs_rx"] > 0
+        if not counted:  # no car that counts and heard V2X at all (test doubles, a loop
+            return []  # too overloaded to receive anything): nothing to check
+        return [r for r in self.rsus if r not in heard and r not in self.may_crash]
 
     @property
     def done_reason(self) -> str | None:
@@ -412,6 +453,12 @@ class MonitorService(DaemonBase[MonitorConfig]):
                 if actions.stop is not None:
                     self._send_stop(actions.stop)
                 if actions.over:
+                    unheard = self.unheard_rsus() if core.failure is None else []
+                    if unheard and self.start is not None:
+                        self.veto = (
+                            f"no car heard {', '.join(unheard)}: an rsu-mode run without "
+                            "its RSU (forged liveliness or stats?)"
+                        )
                     break
                 self._wake.clear()
                 deadline = core.next_deadline()
@@ -419,9 +466,9 @@ class MonitorService(DaemonBase[MonitorConfig]):
                 events = (self._wake,) if halt.is_set() else (self._wake, halt)
                 await wait_any(*events, timeout=min(max(wait, 0.0), MAX_WAIT_S))
         finally:
-            if core.failure is not None:
+            if self.failure is not None:
                 self.exit_code = 1
-                log.error("run failed: %s", core.failure)
+                log.error("run failed: %s", self.failure)
         try:
             if self.start is None:
                 return
@@ -616,7 +663,13 @@ def assemble_result(
     """
     sim_s = truth.last_t or 0.0
     vehicles = start.vehicles
-    network = network_summary(book.snapshots(), len(vehicles), len(start.rsus), sim_s)
+    network = network_summary(
+        book.snapshots(),
+        len(vehicles),
+        len(start.rsus),
+        sim_s,
+        truth.expected_receivers(len(start.rsus)),
+    )
     late = book.late_ticks()
     for node, n in (late_ticks or {}).items():
         if node in book.expected:
@@ -649,8 +702,10 @@ def assemble_result(
         extra["error"] = error
     if rebuilt_from is not None:
         extra["rebuilt_from"] = rebuilt_from
+    metrics = truth.metrics()
+    extra["summary"] = run_summary(metrics, sim_s)
     return run_result(
-        truth.metrics(),
+        metrics,
         mode=start.mode,
         policy=start.policy if start.mode is RunMode.RSU else None,
         seed=start.seed,
@@ -719,7 +774,13 @@ def rebuild_result(run_dir: Path, step_log: Path | None = None) -> RunResult:
         scenario = load_scenario(where)
     except ScenarioError as exc:
         raise StepLogError(f"{path}: scenario {where}: {exc}") from None
-    truth = TruthSteps(scenario, start.vehicles, speed=start.speed, max_sim_s=start.max_sim_s)
+    truth = TruthSteps(
+        scenario,
+        start.vehicles,
+        speed=start.speed,
+        max_sim_s=start.max_sim_s,
+        start_times=start.start_times,
+    )
     book = StatsBook(frozenset(start.vehicles + start.rsus))
     last_wall = start.epoch_unix
     for wall, event in record.events:

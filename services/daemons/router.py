@@ -26,6 +26,7 @@ from typing import Any
 
 from services.edge.lifecycle import run_service
 from services.edge.logs import configure_logging
+from services.edge.metrics import DaemonMetrics, MetricsServer, zenoh_links
 from services.edge.settings import ZenohSettings
 from services.edge.shell import open_transport, watch_reachability
 from services.edge.transport import ZenohTransport
@@ -38,13 +39,21 @@ DEFAULT_LISTEN = ("udp/0.0.0.0:7447", "tcp/0.0.0.0:7447")
 class RouterService:
     """A Zenoh session in router mode, open between startup and shutdown."""
 
-    def __init__(self, settings: ZenohSettings) -> None:
+    def __init__(
+        self, settings: ZenohSettings, metrics_port: int | None = None, metrics_host: str = ""
+    ) -> None:
         self.settings = settings
         self.transport: ZenohTransport | None = None
         self._watch: asyncio.Task[None] | None = None
+        self.metrics_port = metrics_port
+        self.metrics_host = metrics_host or "0.0.0.0"
+        self.metrics: MetricsServer | None = None
 
     async def startup(self) -> None:
         transport = ZenohTransport(self.settings)
+        if self.metrics_port is not None:  # Zenoh links, process (services.edge.metrics)
+            metrics = DaemonMetrics("router", "router", links=zenoh_links(transport))
+            self.metrics = await metrics.serve(self.metrics_host, self.metrics_port)
         await open_transport(transport)  # nothing to close when it fails
         self.transport = transport
         self._watch = asyncio.ensure_future(watch_reachability(transport, logger))
@@ -65,6 +74,8 @@ class RouterService:
         if self.transport is not None:
             self.transport.close()
             logger.info("router stopped")
+        if self.metrics is not None:
+            await self.metrics.close()
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -93,6 +104,12 @@ def configure(parser: argparse.ArgumentParser) -> None:
         help="answer and send multicast scouting (off by default)",
     )
     parser.add_argument("--log-level", default="INFO", metavar="LEVEL", help="default INFO")
+    parser.add_argument(
+        "--metrics-port", type=int, metavar="PORT", help="serve Prometheus metrics on PORT"
+    )
+    parser.add_argument(
+        "--metrics-host", default="0.0.0.0", metavar="ADDR", help="metrics address (0.0.0.0)"
+    )
 
 
 def settings_from_args(args: argparse.Namespace) -> ZenohSettings:
@@ -119,7 +136,7 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         sys.stderr.write(f"crosspath router: config error: {exc}\n")
         return 2
-    return run_service(RouterService(settings))
+    return run_service(RouterService(settings, args.metrics_port, args.metrics_host))
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -52,16 +52,18 @@ from collections.abc import Iterable
 from pathlib import Path
 from typing import Any, Final
 
-from protocol import Command, FuturePath, Header, Message, Mode, ModeCommand
+from protocol import Command, FuturePath, Header, Message, Mode, ModeCommand, VehiclePath
 from protocol import keys as keyexpr
 from protocol.keys import ParsedKey, Stream
 from services.edge.clock import RunClock
+from services.edge.metrics import CoreView
 from services.edge.plumbing import StartRun
 from services.edge.settings import CommonDaemonConfig
 from services.edge.shell import ActorDaemon, DaemonCommand, add_daemon_arguments
 from services.model.types import Policy, RunMode
 from services.rsu.config import rsu_config
 from services.rsu.core import Outgoing, RsuCore
+from services.rsu.plausibility import Bounds, Seen, check_path
 
 __all__ = [
     "TABLE_LOG_MAX",
@@ -102,6 +104,11 @@ class RsuDaemon(ActorDaemon[RsuDaemonConfig]):
 
     def setup(self) -> None:
         self.boot = secrets.token_hex(6)
+        self.bounds = Bounds.from_scenario(self.scenario)
+        self.plausible: dict[str, Seen] = {}
+        """What the plausibility check keeps of each car's last path (this run)."""
+        self.implausible: dict[str, int] = {}
+        """Paths refused as physically implausible, by reason (this run)."""
         self.joined_s: float | None = None
         self.table_log: list[tuple[float, tuple[str, ...]]] = []
         self._table: tuple[str, ...] = ()
@@ -125,6 +132,13 @@ class RsuDaemon(ActorDaemon[RsuDaemonConfig]):
         return start.mode is RunMode.RSU and self.node in start.rsus
 
     def _on_v2x(self, parsed: ParsedKey, message: Message, now: float) -> None:
+        if isinstance(message, VehiclePath):  # issue 13: physically possible at all?
+            sender = message.header.sender
+            why, seen = check_path(message, self.plausible.get(sender), self.bounds)
+            self.plausible[sender] = seen  # bounded: only cars of the run are admitted
+            if why is not None:
+                self.implausible[why] = self.implausible.get(why, 0) + 1
+                return
         if isinstance(message, FuturePath):
             self.reported[message.header.sender] = message.mode
         core = self.core
@@ -154,7 +168,13 @@ class RsuDaemon(ActorDaemon[RsuDaemonConfig]):
             "table_size": len(self._table),
             "vehicles_seen": self._seen,
             "table_log": [[t, list(cars)] for t, cars in self.table_log],
+            "implausible": dict(sorted(self.implausible.items())),
         }
+
+    def core_view(self) -> CoreView | None:
+        """The core's counters (decisions, conflicts...) and table size, for the metrics."""
+        core = self.core
+        return None if core is None else CoreView(core.counters, table_size=len(core.table))
 
     def _send(self, outgoing: Iterable[Outgoing]) -> None:
         for og in outgoing:
@@ -176,6 +196,7 @@ class RsuDaemon(ActorDaemon[RsuDaemonConfig]):
         self._table = ()
         self._seen = 0
         self.core = core
+        self.plausible, self.implausible = {}, {}
         hz = sc.params.planning_hz
         # A daemon restarted during a run joins at the current step, not at step 0.
         first = max(0, math.ceil(clock.now() * hz - 1e-9))

@@ -11,7 +11,7 @@ everything up to the kill is on disk:
   seed, start times, ``epoch_unix``, ``speed``, ``max_sim_s``, cars, RSUs,
   ``expect_crash``), once, when the run starts;
 - ``{"k": "truth", "w": unix_s, "v": car, "n": step, "st": [...], "m": mode,
-  "r": reason}``: every truth report the monitor's core kept, with its arrival
+  "r": reason, "p": presence}``: every truth report the monitor's core kept, with its arrival
   (wall clock, Unix s) and the car's ``TruthState`` as the list
   :data:`STATE_FIELDS` (floats as JSON writes them: exact);
 - ``{"k": "stats", "w": unix_s, "node", "final", "snapshot"}``: every stats
@@ -109,6 +109,7 @@ class StepLog:
                 "st": values,
                 "m": report.mode,
                 "r": report.reason,
+                "p": report.presence,
             }
         )
 
@@ -177,7 +178,12 @@ def read_step_log(path: Path) -> StepLogRecord:
             if kind == "truth":
                 state = TruthState(str(data["v"]), *(float(x) for x in data["st"]))
                 report = TruthReport(
-                    record.start["run_id"], int(data["n"]), state, str(data["m"]), str(data["r"])
+                    record.start["run_id"],
+                    int(data["n"]),
+                    state,
+                    str(data["m"]),
+                    str(data["r"]),
+                    str(data.get("p", "in")),
                 )
                 record.events.append((float(data["w"]), report))
             elif kind == "stats":

@@ -18,6 +18,9 @@ subscriptions), ``run(stop)`` does the work until ``stop`` is set, and
   ``deploy/systemd/`` list it in ``RestartPreventExitStatus``).
 
 ``run`` may also return on its own (the run is over): that is a normal exit, 0.
+
+Once ``startup`` has returned, :func:`serve` tells systemd ``READY=1`` (units with
+``Type=notify``, ``services.edge.notify``), and ``STOPPING=1`` before ``shutdown``.
 """
 
 from __future__ import annotations
@@ -28,6 +31,8 @@ import logging
 import signal
 from collections.abc import Awaitable, Coroutine
 from typing import Any, Protocol
+
+from services.edge.notify import notify
 
 logger = logging.getLogger("crosspath.lifecycle")
 
@@ -128,6 +133,7 @@ async def serve(
     try:
         try:
             await supervisor.step(service.startup())
+            notify("READY=1\nSTATUS=running")  # systemd Type=notify: the unit is started
             await supervisor.step(service.run(supervisor.stop))
         except asyncio.CancelledError:
             if not supervisor.forced:
@@ -140,6 +146,7 @@ async def serve(
             logger.exception("service failed")
             code = EXIT_FAILED
         timeout = force_timeout if supervisor.forced else shutdown_timeout
+        notify("STOPPING=1")
         try:
             await supervisor.step(_bounded(service.shutdown(), timeout))
         except asyncio.CancelledError:

@@ -29,7 +29,8 @@ run time advances ``speed`` times as fast as wall time
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+import time
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import Any, Final
@@ -37,13 +38,20 @@ from typing import Any, Final
 import msgpack
 
 from protocol import keys
+from protocol.auth import Role
+from protocol.codec import MAX_COORD_M, MAX_LENGTH_M, MAX_SPEED_MPS, MAX_WIDTH_M
+from services.edge.trust import Credentials, Refused, Signer, TrustStore
 from services.model.kinematics import TruthState
 from services.model.types import Policy, RunMode
 
 __all__ = [
     "MAX_PLUMBING_BYTES",
+    "MAX_STATS_BYTES",
     "PLUMBING_VERSION",
+    "PRESENCE",
+    "TRUTH_BOUNDS",
     "Control",
+    "PlumbingAuth",
     "PlumbingError",
     "StartRun",
     "StatsReport",
@@ -72,6 +80,37 @@ node is a few kilobytes)."""
 
 MAX_SPEED: Final = 1000.0
 """Largest accepted time scale (as ``config.TimeSettings``)."""
+
+MAX_STATS_BYTES: Final = 128 * 1024
+"""A stats report is at most this long, encoded: larger ones are refused by the decoder
+and are a bug when we make one (every section of a report is bounded: streams, receive
+policies and the RSU's table log are)."""
+
+MAX_RUN_TIME_S: Final = 1e9
+"""Largest run time a truth report may carry [s] (about 30 years)."""
+
+MAX_HEADING_RAD: Final = 100.0
+"""Largest heading magnitude a truth report may carry [rad]; the physics keeps it near
+[-pi, pi], the bound only keeps trigonometry and squares finite."""
+
+MAX_ACCEL_MPS2: Final = 100.0
+"""Largest acceleration magnitude a truth report may carry [m/s^2] (ten g)."""
+
+TRUTH_BOUNDS: Final[Mapping[str, tuple[float, float]]] = MappingProxyType(
+    {
+        "t": (-MAX_RUN_TIME_S, MAX_RUN_TIME_S),
+        "x": (-MAX_COORD_M, MAX_COORD_M),
+        "y": (-MAX_COORD_M, MAX_COORD_M),
+        "heading": (-MAX_HEADING_RAD, MAX_HEADING_RAD),
+        "speed": (-MAX_SPEED_MPS, MAX_SPEED_MPS),
+        "accel": (-MAX_ACCEL_MPS2, MAX_ACCEL_MPS2),
+        "s": (-MAX_COORD_M, MAX_COORD_M),
+        "length": (0.0, MAX_LENGTH_M),
+        "width": (0.0, MAX_WIDTH_M),
+    }
+)
+"""Per ground-truth field, the closed range a report may carry (positions as the V2X wire
+format's, ``protocol.codec``): a car fed ``x = 1e300`` crashed on an OverflowError."""
 
 
 class PlumbingError(ValueError):
@@ -232,18 +271,23 @@ class TruthReport:
     state: TruthState
     mode: str = "AUTO"
     reason: str = ""
+    presence: str = "in"
+    """:data:`PRESENCE`: ``in`` (in the world), ``waiting`` (arrived, not yet inserted: no
+    truth, ``state`` is its entry), ``left`` (at its goal: its last report, then none)."""
 
     def __post_init__(self) -> None:
         _check_id(self.run_id, "run_id")
         _check_id(self.state.id, "vehicle")
         if isinstance(self.step, bool) or not isinstance(self.step, int) or self.step < 0:
             raise PlumbingError(f"step: need an int >= 0, got {self.step!r}")
-        for name in ("t", "x", "y", "heading", "speed", "accel", "s", "length", "width"):
-            _check_number(getattr(self.state, name), name)
+        for name, (lo, hi) in TRUTH_BOUNDS.items():
+            _check_number(getattr(self.state, name), name, lo=lo, hi=hi)
         for name in ("mode", "reason"):
             value = getattr(self, name)
             if not isinstance(value, str) or len(value) > 64:
                 raise PlumbingError(f"{name}: need a text of at most 64 characters")
+        if self.presence not in PRESENCE:
+            raise PlumbingError(f"presence: need one of {', '.join(PRESENCE)}")
 
     @property
     def vehicle(self) -> str:
@@ -341,6 +385,9 @@ def decode_control(data: bytes) -> Control:
     raise PlumbingError(f"control: unknown message type {kind!r}")
 
 
+PRESENCE: Final = ("in", "waiting", "left")
+"""A car's presence in the world in a truth report (``TruthReport.presence``)."""
+
 _TRUTH_FIELDS: Final = ("t", "x", "y", "heading", "speed", "accel", "s", "length", "width")
 
 
@@ -356,6 +403,7 @@ def encode_truth(report: TruthReport) -> bytes:
             "state": [float(getattr(st, name)) for name in _TRUTH_FIELDS],
             "mode": report.mode,
             "reason": report.reason,
+            "presence": report.presence,
         }
     )
 
@@ -369,7 +417,8 @@ def decode_truth(data: bytes) -> TruthReport:
     if not isinstance(values, list | tuple) or len(values) != len(_TRUTH_FIELDS):
         raise PlumbingError(f"truth: state must be a list of {len(_TRUTH_FIELDS)} numbers")
     for name, value in zip(_TRUTH_FIELDS, values, strict=True):
-        _check_number(value, f"truth state.{name}")
+        lo, hi = TRUTH_BOUNDS[name]
+        _check_number(value, f"truth state.{name}", lo=lo, hi=hi)
     vehicle = _field(body, "vehicle", "truth")
     _check_id(vehicle, "truth vehicle")
     state = TruthState(vehicle, *(float(v) for v in values))
@@ -380,14 +429,15 @@ def decode_truth(data: bytes) -> TruthReport:
             state=state,
             mode=body.get("mode", "AUTO"),
             reason=body.get("reason", ""),
+            presence=body.get("presence", "in"),
         )
     except PlumbingError as exc:
         raise PlumbingError(f"truth: {exc}") from None
 
 
 def encode_stats(report: StatsReport) -> bytes:
-    """A stats report as bytes."""
-    return _pack(
+    """A stats report as bytes; ValueError (our bug) beyond :data:`MAX_STATS_BYTES`."""
+    data = _pack(
         {
             "type": "stats",
             "node": report.node,
@@ -396,6 +446,9 @@ def encode_stats(report: StatsReport) -> bytes:
             "snapshot": dict(report.snapshot),
         }
     )
+    if len(data) > MAX_STATS_BYTES:
+        raise ValueError(f"stats report of {len(data)} B exceeds {MAX_STATS_BYTES} B")
+    return data
 
 
 def decode_stats(data: bytes) -> StatsReport:
@@ -403,6 +456,8 @@ def decode_stats(data: bytes) -> StatsReport:
 
     The counters themselves are checked when merged (``stats.merge_snapshots``).
     """
+    if isinstance(data, bytes | bytearray | memoryview) and len(data) > MAX_STATS_BYTES:
+        raise PlumbingError(f"stats: payload of {len(data)} B exceeds {MAX_STATS_BYTES} B")
     body = _unpack(data, "stats")
     if body.get("type") != "stats":
         raise PlumbingError(f"stats: unexpected message type {body.get('type')!r}")
@@ -415,6 +470,101 @@ def decode_stats(data: bytes) -> StatsReport:
         )
     except PlumbingError as exc:
         raise PlumbingError(f"stats: {exc}") from None
+
+
+# --------------------------------------------------------------------------- authentication
+
+
+class PlumbingAuth:
+    """Signs the plumbing this daemon publishes and verifies what it receives (issue 13).
+
+    Every payload travels as a ``services.edge.trust`` signed blob (Ed25519 over the
+    payload, a run tag, a per-signer counter and the signer's certificate). What a blob
+    may say depends on its key: a truth report on ``sim/truth/{car}`` only with that
+    car's vehicle certificate, a stats report on ``stats/{node}`` only with that node's,
+    a control message only with a monitor certificate (:meth:`open`) whose subject is
+    the run's ``monitor`` (:meth:`check_control`). Refusals raise :class:`PlumbingError` (counted in
+    ``plumbing_malformed``) and are counted by reason in :attr:`refused`.
+
+    Decisions where the issue is silent: the run tag is not checked (a start names a
+    run that does not exist yet, and every payload names its run id, which the
+    handlers check); replays are refused by the counter window per signer, and the
+    counter starts at the signer's start time in milliseconds, so that a restarted
+    daemon is not taken for a replay of its earlier incarnation. Liveliness tokens
+    carry no payload and cannot be signed: a forged token alone cannot start a run
+    (every actor must acknowledge the start with a signed stats report) nor fake an
+    RSU (``services.daemons.monitor``: the cars must have heard it).
+    """
+
+    def __init__(
+        self, credentials: Credentials, *, time_fn: Callable[[], float] = time.time
+    ) -> None:
+        self.credentials = credentials
+        self.signer = Signer(credentials)
+        self.signer._counter = int(time_fn() * 1000) & 0xFFFFFFFF
+        self.stores = {
+            kind: TrustStore(credentials.root, revocation=credentials.revocation)
+            for kind in ("control", "truth", "stats")
+        }
+        """One per kind of payload: a signer's counter runs across its truth and its stats,
+        which travel on different keys and queues, so each kind keeps its own replay
+        window (else a queue that lags 64 behind the other looks like a replay)."""
+        self.refused: dict[str, int] = {}
+
+    @property
+    def subject(self) -> str:
+        """Who this daemon signs as."""
+        return self.credentials.subject
+
+    def seal(self, payload: bytes) -> bytes:
+        """``payload`` signed by this daemon."""
+        return self.signer.seal_blob(payload)
+
+    def _refuse(self, reason: str, detail: str) -> PlumbingError:
+        self.refused[reason] = self.refused.get(reason, 0) + 1
+        return PlumbingError(f"unauthenticated ({reason}): {detail}")
+
+    def open(
+        self, key: str, blob: bytes, *, prefix: str = keys.DEFAULT_PREFIX
+    ) -> tuple[bytes, str]:
+        """The payload of ``blob`` received on ``key`` and its signer's subject.
+
+        Raises :class:`PlumbingError` when the blob is not validly signed by a key the
+        root certified, is a replay, or names a sender its key does not allow."""
+        try:
+            parsed = keys.parse(key, prefix=prefix)
+        except keys.BadKey as exc:
+            raise self._refuse("bad_key", str(exc)) from None
+        kind = "stats" if parsed.stream is keys.Stream.STATS else (parsed.parts or ("",))[0]
+        store = self.stores.get(kind, self.stores["control"])
+        try:
+            payload, cert = store.verify_blob(blob, any_run=True)
+        except Refused as exc:
+            raise self._refuse(exc.reason, f"{key}: {exc}") from None
+        named, role = None, None
+        if parsed.stream is keys.Stream.STATS:
+            named = parsed.node
+        elif parsed.parts[:1] == ("truth",) and len(parsed.parts) == 2:
+            named, role = parsed.parts[1], Role.VEHICLE
+        elif parsed.parts == ("control",):
+            role = Role.MONITOR
+        if named is not None and cert.subject != named:
+            raise self._refuse("wrong_sender", f"{key} signed by {cert.subject}")
+        if role is not None and cert.role is not role:
+            raise self._refuse("wrong_role", f"{key} signed by {cert.subject} ({cert.role.name})")
+        return payload, cert.subject
+
+    def check_control(self, subject: str | None, message: Control, start: StartRun | None) -> None:
+        """Refuse (PlumbingError) a control message its signer ``subject`` may not send:
+        a start not signed by its ``monitor``, or by an actor of it; a stop not signed by
+        the monitor of ``start`` (the run it would stop)."""
+        run = message if isinstance(message, StartRun) else start
+        if run is None:
+            return  # a stop of no run of ours: ignored anyway
+        if subject != run.monitor or subject in run.vehicles or subject in run.rsus:
+            raise self._refuse(
+                "not_monitor", f"{type(message).__name__} of run {message.run_id} by {subject}"
+            )
 
 
 # --------------------------------------------------------------------------- checks

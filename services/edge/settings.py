@@ -123,6 +123,42 @@ class ZenohSettings(BaseModel):
         return value
 
 
+class SecuritySettings(BaseModel):
+    """A daemon's credentials (issue 13; files written by ``crosspath keys``).
+
+    With ``key``, ``certificate`` and ``root`` set, the daemon signs every V2X
+    datagram it sends and refuses (counts and drops) every one not signed by a
+    key the root certified for its sender and role (``services.edge.trust``).
+    With none of them set the daemon sends unsigned and accepts anything, and says
+    so loudly at start (``insecure = true`` states that this is meant)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, coerce_numbers_to_str=True)
+
+    key: Path | None = None
+    """This daemon's Ed25519 private key (PEM, ``<id>.key``); ``{node}`` stands for the
+    node id (``keys/{node}.key`` serves every car of a multi-car host)."""
+    certificate: Path | None = None
+    """Its certificate (``<id>.cert``, ``{node}`` as for ``key``)."""
+    root: Path | None = None
+    """The authority's public key every certificate must be signed by (``root.pub``)."""
+    revocation: Path | None = None
+    """Revoked key ids, one hex per line (``revoked.txt``), re-read when it changes."""
+    insecure: bool = False
+    """Run without signatures on purpose (comparison runs); refused with credentials set."""
+
+    @property
+    def enabled(self) -> bool:
+        """Whether credentials are configured (signing and verification on)."""
+        return self.key is not None
+
+    def model_post_init(self, context: Any, /) -> None:
+        named = [self.key, self.certificate, self.root]
+        if any(p is not None for p in named) and not all(p is not None for p in named):
+            raise ValueError("security needs key, certificate and root together")
+        if self.insecure and self.key is not None:
+            raise ValueError("security.insecure with credentials set: choose one")
+
+
 class TimeSettings(BaseModel):
     """The run's shared time base (see ``services.edge.clock.RunClock``)."""
 
@@ -159,6 +195,12 @@ class CommonDaemonConfig(BaseSettings):
     log_json: bool = False
     time: TimeSettings = Field(default_factory=TimeSettings)
     stats_period_s: Annotated[float, Field(gt=0.0)] = 1.0
+    metrics_port: Annotated[int, Field(ge=0, le=65535)] | None = None
+    """Serve Prometheus metrics on this TCP port (0: any free one); None: no endpoint
+    (``services.edge.metrics``)."""
+    metrics_host: str = "0.0.0.0"
+    """Address the metrics endpoint listens on."""
+    security: SecuritySettings = Field(default_factory=SecuritySettings)
 
     @field_validator("node_id")
     @classmethod
@@ -367,6 +409,9 @@ def add_common_arguments(parser: argparse.ArgumentParser) -> None:
     )
     group.add_argument("--prefix", metavar="PREFIX", help="key expression prefix (crosspath)")
     group.add_argument("--log-level", metavar="LEVEL", help="DEBUG, INFO, WARNING or ERROR")
+    group.add_argument(
+        "--metrics-port", type=int, metavar="PORT", help="serve Prometheus metrics on PORT"
+    )
 
 
 def overrides_from_args(args: argparse.Namespace) -> dict[str, object]:
@@ -392,6 +437,8 @@ def overrides_from_args(args: argparse.Namespace) -> dict[str, object]:
         overrides["key_prefix"] = args.prefix
     if getattr(args, "log_level", None):
         overrides["log_level"] = args.log_level
+    if getattr(args, "metrics_port", None) is not None:
+        overrides["metrics_port"] = args.metrics_port
     return overrides
 
 

@@ -15,10 +15,26 @@
   decoded message's one-way latency is ``clock.now() - header.time_s``;
   messages dated more than :data:`MAX_FUTURE_S` in the future or older than
   :data:`MAX_AGE_S` are counted ``dropped_stale`` and dropped;
+- receives through bounded inboxes (``services.edge.transport.Inbox``, issue 13): a
+  datagram whose key names a sender that is not a node of the current run is refused
+  on the network thread (counted ``refused`` in the stats' ``receive`` section) before
+  its payload is copied; V2X keeps the latest datagram per sender and kind, rate
+  limited to :data:`V2X_RATE_HZ` per run second; plumbing is first in, first out
+  (:data:`PLUMBING_DEPTH` per sender) and signed (``services.edge.plumbing.PlumbingAuth``)
+  when the daemon has credentials;
+- with credentials (``[security]``, issue 13) verifies every V2X datagram that
+  passed those checks (``services.edge.trust.TrustStore``: certificate chain,
+  role, sender, run tag, replay window, Ed25519) and refuses the rest, counted
+  by reason in the stats' ``auth`` section; the handler finds the verified
+  certificate in :attr:`DaemonShell.verified`. Without credentials it warns
+  loudly at start and accepts unsigned datagrams;
 - sends V2X messages (:meth:`DaemonShell.publish_v2x`) with the stream's QoS
-  (best effort, UDP) and counts them (bytes = encoded payload length);
+  (best effort, UDP), signed when it has credentials, and counts them (bytes =
+  the datagram's length, signature included);
 - publishes its counters (:class:`~services.edge.plumbing.StatsReport`) on
-  ``{prefix}/stats/{node}`` every ``stats_period_s`` and a final one per run.
+  ``{prefix}/stats/{node}`` every ``stats_period_s`` and a final one per run, and
+  serves the same counters as Prometheus metrics when ``metrics_port`` is set
+  (``services.edge.metrics``).
 
 Errors, split as h11 splits them (a peer's protocol error vs our own bug):
 
@@ -80,12 +96,15 @@ from pathlib import Path
 from typing import Any, Final, Generic, TypeVar
 
 from protocol import MAX_DATAGRAM, DecodeError, EncodeError, Message, decode, encode, keys
+from protocol.auth import Certificate
 from protocol.keys import ParsedKey, Stream
 from services.edge.clock import RunClock
 from services.edge.lifecycle import EXIT_CONFIG, EXIT_FAILED, Service, ServiceExit, run_service
 from services.edge.logs import configure_logging
+from services.edge.metrics import CoreView, DaemonMetrics, MetricsServer, zenoh_links
 from services.edge.plumbing import (
     Control,
+    PlumbingAuth,
     PlumbingError,
     StartRun,
     StatsReport,
@@ -112,6 +131,7 @@ from services.edge.stats import NodeStats
 from services.edge.transport import (
     RELIABLE_QOS,
     LivelinessHandler,
+    ReceivePolicy,
     Subscription,
     Transport,
     TransportConfigError,
@@ -120,6 +140,7 @@ from services.edge.transport import (
     init_zenoh_logging,
     qos_for,
 )
+from services.edge.trust import Refused, Signer, TrustStore, load_security
 from services.model.scenario import Scenario, ScenarioError, load_scenario
 
 __all__ = [
@@ -158,6 +179,26 @@ final stats report (datagrams in flight)."""
 
 UNREACHABLE_WARN_S: Final = 5.0
 """Wall seconds after which a Zenoh session with connect endpoints but no link says so."""
+
+V2X_RATE_HZ: Final = 50.0
+"""Datagrams per run second one V2X lane (sender and kind) may deliver: five times a
+future path's 10 Hz; scaled by the run's speed. Beyond it they are dropped and counted
+(``rate_limited`` in the stats' ``receive`` section)."""
+
+V2X_BURST: Final = 25.0
+"""Datagrams a V2X lane may deliver back to back before its rate applies."""
+
+PLUMBING_DEPTH: Final = 256
+"""Plumbing messages queued per sender key (first in, first out; truth must not be
+coalesced); more push out the oldest (counted ``coalesced``)."""
+
+PLUMBING_LANES: Final = 256
+"""Plumbing sender keys queued at once."""
+
+PLUMBING_BYTES: Final = 16 * 1024 * 1024
+"""Plumbing bytes queued at once (a stats report may be tens of kilobytes)."""
+
+_V2X_LABELS: Final = frozenset(str(s) for s in (Stream.FP, Stream.AP, Stream.CMD, Stream.BEACON))
 
 V2xHandler = Callable[[ParsedKey, Message, float], None]
 """Receives (parsed key, decoded message, run time of reception) on the event loop."""
@@ -241,6 +282,7 @@ class DaemonShell:
         *,
         time_fn: Callable[[], float] = time.time,
         extras: Callable[[], Mapping[str, Any]] | None = None,
+        core: Callable[[], CoreView | None] | None = None,
     ) -> None:
         self.config = config
         self.node = config.node_id
@@ -262,16 +304,52 @@ class DaemonShell:
         """What failed first, once a handler raised."""
         self.faulted = asyncio.Event()
         self.ratelog = RateLimitedLog(self.log)
+        self.actors: frozenset[str] | None = None
+        """The nodes of the current run; when set, datagrams from any other sender are
+        refused on the network thread (``services.edge.transport.Inbox``)."""
+        self.receive: dict[str, ReceivePolicy] = {}
+        """The receive policy (bounded inbox, counters) of each subscription, by label."""
         self._extras = extras
+        self.metrics: DaemonMetrics | None = None
+        """Prometheus metrics (``services.edge.metrics``), when ``metrics_port`` is set."""
+        if config.metrics_port is not None:
+            links = zenoh_links(self.transport)
+            self.metrics = DaemonMetrics(self.node, service, self, core, links)
+        self._metrics_server: MetricsServer | None = None
         self._token: Subscription | None = None
         self._tasks: list[asyncio.Task[None]] = []
         self._stats_started = False
         self._opened = False
+        security = load_security(config.security, self.node)
+        self.signer: Signer | None = None if security is None else security[0]
+        """Signs every V2X datagram sent (issue 13); None: unsigned (insecure)."""
+        self.trust: TrustStore | None = None if security is None else security[1]
+        """Verifies every V2X datagram received; None: accepts unsigned (insecure)."""
+        self.verified: Certificate | None = None
+        """The certificate of the datagram whose handler runs now (None when insecure)."""
+        self.plumbing_auth: PlumbingAuth | None = (
+            None if self.signer is None else PlumbingAuth(self.signer.credentials)
+        )
+        """Signs and verifies the plumbing (start, stop, truth, stats); None: insecure."""
+        self.plumbing_subject: str | None = None
+        """Who signed the plumbing message whose handler runs now (None when insecure)."""
 
     # ------------------------------------------------------------------ life
 
     async def open(self) -> None:
-        """Open the transport (:func:`open_transport`) and watch that it reaches a peer."""
+        """Serve the metrics (when configured), open the transport (:func:`open_transport`)
+        and watch that it reaches a peer."""
+        if self.signer is None:  # here, not in __init__: logging is configured by now
+            self.log.warning(
+                "INSECURE: %s — V2X is neither signed nor verified; any peer can command "
+                "the cars (issue 13; give security.key/certificate/root)",
+                "by choice (security.insecure)"
+                if self.config.security.insecure
+                else "no credentials",
+            )
+        if self.metrics is not None and self._metrics_server is None:
+            port = self.config.metrics_port or 0
+            self._metrics_server = await self.metrics.serve(self.config.metrics_host, port)
         await open_transport(self.transport)
         self._opened = True
         if isinstance(self.transport, ZenohTransport):
@@ -312,6 +390,9 @@ class DaemonShell:
             token.close()
         self._opened = False
         self.transport.close()
+        server, self._metrics_server = self._metrics_server, None
+        if server is not None:
+            await server.close()
 
     # ------------------------------------------------------------------ our own bugs
 
@@ -350,11 +431,22 @@ class DaemonShell:
 
     def begin_run(self, run_id: str, epoch_unix: float, speed: float) -> RunClock:
         """Fresh counters and the run clock of a new run; acknowledges it with a stats report."""
+        if self.metrics is not None:
+            self.metrics.observe()  # the counters between runs, before they are replaced
         self.stats = NodeStats(self.node)
         self.run_id = run_id
         self.late_ticks = 0
         self.max_tick_lag_s = 0.0
+        for label, policy in self.receive.items():
+            policy.stats.reset()
+            if label in _V2X_LABELS:
+                policy.rate_hz = V2X_RATE_HZ * speed
+                policy.burst = max(V2X_BURST, V2X_RATE_HZ * speed / 2)
         self.clock = RunClock(epoch_unix, speed, time_fn=self.time_fn)
+        if self.signer is not None and self.trust is not None:
+            self.trust.begin_run(run_id)
+            self.signer.begin_run(self.trust.run, speed)
+            self.trust.counters.clear()
         self.publish_stats(final=False)
         return self.clock
 
@@ -388,6 +480,8 @@ class DaemonShell:
         if lag > period_s:
             self.late_ticks += 1
         self.max_tick_lag_s = max(self.max_tick_lag_s, lag)
+        if self.metrics is not None:
+            self.metrics.on_tick(lag, period_s)
 
     def run_truth(self, key: str, payload: bytes, start: StartRun | None) -> TruthReport | None:
         """A car's ground truth of run ``start``; None outside a run or for another run.
@@ -437,7 +531,29 @@ class DaemonShell:
                 lambda: self._on_datagram(key, payload, stream, handler, ignore_vehicle),
             )
 
-        return self.transport.subscribe(keyexpr, on_datagram)
+        policy = self.receive.setdefault(str(stream), ReceivePolicy(admit=self._admits))
+        return self.transport.subscribe(keyexpr, on_datagram, policy)
+
+    def _admits(self, key: str) -> bool:
+        """Whether a datagram on ``key`` may be queued: always outside a run and for keys
+        that name no sender (control, or not ours: counted malformed later), else only
+        from a node of the run. Runs on the network thread: a key parse and a set lookup."""
+        actors = self.actors
+        if actors is None:
+            return True
+        try:
+            parsed = keys.parse(key, prefix=self.prefix)
+        except keys.BadKey:
+            return True
+        if parsed.stream in (Stream.CMD, Stream.BEACON):
+            sender = parsed.rsu
+        elif parsed.stream is Stream.STATS:
+            sender = parsed.node
+        elif parsed.stream is Stream.SIM:
+            sender = parsed.parts[1] if len(parsed.parts) == 2 else None
+        else:
+            sender = parsed.vehicle
+        return sender is None or sender in actors
 
     def _on_datagram(
         self,
@@ -472,6 +588,8 @@ class DaemonShell:
             return
         clock = self.clock
         if clock is None:
+            if self.trust is not None:  # know the senders' certificates when the run starts
+                self.trust.learn(payload, message)
             return
         now = clock.now()
         age = now - message.header.time_s
@@ -487,14 +605,28 @@ class DaemonShell:
                 now,
             )
             return
-        self.stats.on_receive(name, len(payload), age / clock.speed)
-        handler(parsed, message, now)
+        trust = self.trust
+        if trust is not None:
+            try:
+                self.verified = trust.verify_datagram(payload, message)
+            except Refused as exc:
+                self.ratelog.log(
+                    logging.WARNING, f"refused:{name}", "refused datagram on %s: %s", key, exc
+                )
+                return
+        try:
+            self.stats.on_receive(name, len(payload), age / clock.speed)
+            handler(parsed, message, now)
+        finally:
+            self.verified = None
 
     def publish_v2x(self, key: str, message: Message) -> bool:
         """Encode and send one V2X message on ``key``; False (logged) if it could not be sent."""
         stream = keys.STREAM_OF_KIND[message.kind]
         try:
             payload = encode(message)
+            if self.signer is not None:
+                payload = self.signer.seal(payload)
         except EncodeError as exc:
             self.ratelog.log(
                 logging.ERROR, f"encode:{stream}", "cannot encode %s: %s", message.kind.name, exc
@@ -523,6 +655,9 @@ class DaemonShell:
 
         def checked(key: str, payload: bytes) -> None:
             try:
+                auth = self.plumbing_auth
+                if auth is not None:
+                    payload, self.plumbing_subject = auth.open(key, payload, prefix=self.prefix)
                 handler(key, payload)
             except PlumbingError as exc:
                 self.plumbing_malformed += 1
@@ -533,14 +668,30 @@ class DaemonShell:
                     key,
                     exc,
                 )
+            finally:
+                self.plumbing_subject = None
 
         def on_payload(key: str, payload: bytes) -> None:
             self.guard(f"handling a plumbing message on {key}", lambda: checked(key, payload))
 
-        return self.transport.subscribe(keyexpr, on_payload)
+        label = keyexpr.removeprefix(f"{self.prefix}/")
+        policy = self.receive.setdefault(
+            label,
+            ReceivePolicy(
+                depth=PLUMBING_DEPTH,
+                by_kind=False,
+                max_lanes=PLUMBING_LANES,
+                max_bytes=PLUMBING_BYTES,
+                admit=self._admits,
+            ),
+        )
+        return self.transport.subscribe(keyexpr, on_payload, policy)
 
     def publish_plumbing(self, key: str, payload: bytes) -> bool:
-        """Send one reliable plumbing message; False (logged) if the transport refused."""
+        """Send one reliable plumbing message (signed unless insecure); False (logged) if
+        the transport refused."""
+        if self.plumbing_auth is not None:
+            payload = self.plumbing_auth.seal(payload)
         try:
             self.transport.publish(key, payload, RELIABLE_QOS)
         except TransportError as exc:
@@ -557,12 +708,19 @@ class DaemonShell:
         if self.run_id is not None:
             snapshot["late_ticks"] = self.late_ticks
             snapshot["max_tick_lag_s"] = round(self.max_tick_lag_s, 4)
+        snapshot["receive"] = {k: p.stats.snapshot() for k, p in sorted(self.receive.items())}
+        if self.plumbing_auth is not None:
+            snapshot["plumbing_refused"] = dict(sorted(self.plumbing_auth.refused.items()))
+        if self.trust is not None:
+            snapshot["auth"] = dict(sorted(self.trust.counters.items()))
         if self._extras is not None:
             snapshot.update(self._extras())
         return StatsReport(node=self.node, run_id=self.run_id, final=final, snapshot=snapshot)
 
     def publish_stats(self, final: bool) -> None:
         """Publish :meth:`stats_report` on ``{prefix}/stats/{node}`` (no-op before open)."""
+        if self.metrics is not None:
+            self.metrics.observe()  # before the shell replaces a run's counters
         if not self._opened:
             return
         self.publish_plumbing(
@@ -637,7 +795,12 @@ class DaemonBase(Generic[C]):
         self.scenario = scenario
         self.time_fn = time_fn
         self.shell = DaemonShell(
-            config, self.service, transport, time_fn=time_fn, extras=self.stats_extras
+            config,
+            self.service,
+            transport,
+            time_fn=time_fn,
+            extras=self.stats_extras,
+            core=self.core_view,
         )
         self.log = self.shell.log
         self.node = config.node_id
@@ -672,6 +835,10 @@ class DaemonBase(Generic[C]):
     def stats_extras(self) -> Mapping[str, Any]:
         """Extra fields of this daemon's stats reports."""
         return {}
+
+    def core_view(self) -> CoreView | None:
+        """The pure core's counters and state for the metrics; None: no core now."""
+        return None
 
     def ready_message(self) -> str:
         """The INFO line logged once the daemon is ready."""
@@ -805,6 +972,7 @@ class ActorDaemon(DaemonBase[C]):
         self._halt.clear()
         self._halt_reason = ""
         self.active = start
+        self.shell.actors = frozenset((*start.vehicles, *start.rsus, start.monitor))
         clock = self.shell.begin_run(start.run_id, start.epoch_unix, start.speed)
         self.log.info(
             "run %s: %s mode, policy %s, epoch in %.2f s wall, speed %g",
@@ -828,6 +996,7 @@ class ActorDaemon(DaemonBase[C]):
             finally:
                 self.active = None
                 await self.shell.end_run(DRAIN_S)
+                self.shell.actors = None
                 self.runs_done += 1
 
     # -- control
@@ -839,6 +1008,11 @@ class ActorDaemon(DaemonBase[C]):
 
     def _on_control(self, key: str, payload: bytes) -> None:
         message: Control = decode_control(payload)
+        auth = self.shell.plumbing_auth
+        if auth is not None:
+            runs = [r for r in (self.active, self._pending) if r is not None]
+            run = next((r for r in runs if r.run_id == message.run_id), None)
+            auth.check_control(self.shell.plumbing_subject, message, run)
         if isinstance(message, StopRun):
             if self.active is not None and message.run_id == self.active.run_id:
                 self._end(f"stopped by the monitor ({message.reason})")

@@ -247,7 +247,7 @@ def network_section(
     snapshots: Sequence[Mapping[str, Any]],
     n_vehicles: int,
     duration_s: float,
-    expected_receivers: Mapping[str, int],
+    expected_receivers: Mapping[str, float],
 ) -> dict[str, dict[str, Any]]:
     """The ``network`` section of a daemon run result: one entry per stream.
 

@@ -8,6 +8,19 @@ key and the payload bytes and hands them over with ``loop.call_soon_threadsafe``
 (it never blocks and never raises; if the loop is closed the datagram is
 dropped and counted in ``dropped``).
 
+The receive path must not share fate with the control loop (issue 13: a flood of
+5000 future paths per second stalled the RSU's ticks for seconds and grew the cars
+without bound). A subscription made with a :class:`ReceivePolicy` goes through an
+:class:`Inbox`: an admission check of the key on the network thread (the shell
+refuses senders that are not actors of the current run before the payload is even
+copied), a per-lane token bucket, one bounded queue per lane (a lane is one key and
+message kind, i.e. one sender: for V2X the latest message wins), bounds on lanes,
+bytes and rate states (least recently used evicted), and a loop side that takes
+the lanes round robin a few at a time (``batch``, ``budget_s``) and then yields, so
+a timer due meanwhile (the next tick) runs within about one budget. One wake-up of
+the loop per batch instead of one per datagram. Without a policy every datagram is
+handed to the loop as it comes (tests, tools).
+
 QoS (DESIGN.md, key expressions): ``protocol.keys.QOS`` says per stream how it
 is published; :func:`qos_for` (stream) and :func:`qos_for_key` (key) look it up.
 V2X streams are best effort and dropped under congestion (future paths also
@@ -41,25 +54,35 @@ import asyncio
 import itertools
 import json
 import logging
+import math
 import re
 import threading
+import time
+from collections import OrderedDict, deque
 from collections.abc import Callable
+from dataclasses import dataclass, field
 from typing import Any, Final, Protocol
 
 import zenoh
 
+from protocol.auth import DIGEST_TRAILER_LEN, SCHEME_ED25519, Form
 from protocol.keys import DEFAULT_PREFIX, QOS, Qos, Stream, parse
+from protocol.messages import Flags
 from services.edge.settings import ZenohSettings
+from services.edge.stats import LatencyHistogram
 
 __all__ = [
     "RELIABLE_QOS",
     "V2X_QOS",
     "EndpointError",
     "Handler",
+    "Inbox",
     "LivelinessHandler",
     "MemoryBus",
     "MemoryTransport",
     "Qos",
+    "ReceivePolicy",
+    "ReceiveStats",
     "Subscription",
     "Transport",
     "TransportConfigError",
@@ -180,6 +203,291 @@ def keyexpr_matches(pattern: str, key: str) -> bool:
     return reachable[len(chunks)]
 
 
+# --------------------------------------------------------------------------- receive path
+
+
+_COUNTERS: Final = ("offered", "refused", "rate_limited", "coalesced", "overflow", "delivered")
+
+
+class ReceiveStats:
+    """What the inboxes of one subscription did (thread-safe): datagrams ``offered`` by the
+    network, ``refused`` by the admission check, ``rate_limited``, ``coalesced`` (replaced
+    by a newer one of the same lane before the loop took it), ``overflow`` (no room) and
+    ``delivered``; the wall-second latency from arrival to the end of the handler; the most
+    lanes (senders) and bytes ever queued at once. Its snapshot has a fixed size."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self.counts: dict[str, int] = dict.fromkeys(_COUNTERS, 0)
+        self.latency = LatencyHistogram()
+        self.max_lanes = 0
+        self.max_bytes = 0
+
+    def count(self, name: str, n: int = 1) -> None:
+        with self._lock:
+            self.counts[name] += n
+
+    def _queued(self, lanes: int, nbytes: int) -> None:
+        with self._lock:
+            self.counts["offered"] += 1
+            self.max_lanes = max(self.max_lanes, lanes)
+            self.max_bytes = max(self.max_bytes, nbytes)
+
+    def _delivered(self, latency_s: float) -> None:
+        with self._lock:
+            self.counts["delivered"] += 1
+            self.latency.add(max(0.0, latency_s))
+
+    def reset(self) -> None:
+        """Start counting afresh (a new run)."""
+        with self._lock:
+            self.counts = dict.fromkeys(_COUNTERS, 0)
+            self.latency = LatencyHistogram()
+            self.max_lanes = 0
+            self.max_bytes = 0
+
+    def snapshot(self) -> dict[str, Any]:
+        """Counters, ``latency_ms_p50`` / ``_p99`` / ``_max`` (None before any delivery),
+        ``max_lanes`` and ``max_bytes``: a few dozen bytes whatever the traffic."""
+        with self._lock:
+            hist = self.latency
+            out: dict[str, Any] = dict(self.counts)
+            p50, p99 = hist.percentile(0.5), hist.percentile(0.99)
+            out["latency_ms_p50"] = None if p50 is None else round(p50 * 1e3, 3)
+            out["latency_ms_p99"] = None if p99 is None else round(p99 * 1e3, 3)
+            out["latency_ms_max"] = round(hist.max_s * 1e3, 3) if hist.count else None
+            out["max_lanes"] = self.max_lanes
+            out["max_bytes"] = self.max_bytes
+            return out
+
+
+def _digest_signed(payload: bytes) -> bool:
+    """Whether a signed datagram names its signer by key id (the trailer is the last
+    ``DIGEST_TRAILER_LEN`` bytes: scheme 1, length, form 0), not by its certificate."""
+    n = len(payload)
+    return (
+        n >= DIGEST_TRAILER_LEN
+        and payload[n - DIGEST_TRAILER_LEN] == SCHEME_ED25519
+        and payload[n - DIGEST_TRAILER_LEN + 1] == DIGEST_TRAILER_LEN - 2
+        and payload[n - DIGEST_TRAILER_LEN + 2] == Form.DIGEST
+    )
+
+
+Admit = Callable[[str], bool]
+"""Cheap check of a key on the network thread: False refuses the datagram (counted)."""
+
+
+@dataclass(slots=True)
+class ReceivePolicy:
+    """How a subscription's datagrams wait between the network thread and the event loop.
+
+    A *lane* is the key (plus, with ``by_kind``, the V2X message kind, byte 2 of the
+    payload: a mode command never replaces a coordinated path; and whether a signed
+    datagram carries its signer's certificate, which a signer attaches about once a
+    second and the receiver needs before it can verify the digest-signed ones), i.e.
+    one sender and one kind of message. Each lane keeps at most ``depth`` datagrams
+    (1: the latest wins)
+    and is fed by a token bucket of ``rate_hz`` [datagrams per wall s] and ``burst``
+    (``rate_hz`` 0: unlimited); at most ``max_lanes`` lanes and ``max_bytes`` queued
+    bytes, else the datagram is dropped (``overflow``); at most ``max_buckets`` rate
+    states, the least recently used evicted. The loop takes the lanes round robin, at
+    most ``batch`` datagrams or ``budget_s`` wall seconds per turn, then yields so that
+    timers (the control loop's ticks) run on time. Fields may be changed while
+    subscribed (the shell scales the rates with the run's speed).
+    """
+
+    depth: int = 1
+    by_kind: bool = True
+    rate_hz: float = 0.0
+    burst: float = 25.0
+    max_lanes: int = 1024
+    max_bytes: int = 4 * 1024 * 1024
+    max_buckets: int = 4096
+    batch: int = 64
+    budget_s: float = 0.002
+    admit: Admit | None = None
+    stats: ReceiveStats = field(default_factory=ReceiveStats)
+
+    def __post_init__(self) -> None:
+        for name in ("depth", "max_lanes", "max_bytes", "max_buckets", "batch"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"{name} must be an int >= 1, got {value!r}")
+        for name in ("rate_hz", "burst", "budget_s"):
+            value = getattr(self, name)
+            if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
+                raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
+
+
+class Inbox:
+    """The bounded queue of one subscription (see :class:`ReceivePolicy`).
+
+    :meth:`admits` and :meth:`put` run on any thread and never block for long nor
+    raise; the handler runs on ``loop``, a few datagrams per loop turn. Memory is
+    bounded by the policy whatever arrives: this is what keeps a flood from stalling
+    the control loop or growing the daemon.
+    """
+
+    def __init__(
+        self,
+        loop: asyncio.AbstractEventLoop,
+        deliver: Handler,
+        policy: ReceivePolicy,
+        time_fn: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.loop = loop
+        self.policy = policy
+        self.active = True
+        self._deliver = deliver
+        self._time = time_fn
+        self._lock = threading.Lock()
+        self._lanes: OrderedDict[str, deque[tuple[str, bytes, float]]] = OrderedDict()
+        self._buckets: OrderedDict[str, list[float]] = OrderedDict()
+        self._bytes = 0
+        self._scheduled = False
+
+    @property
+    def lanes(self) -> int:
+        """Lanes (senders and kinds) with something queued now."""
+        return len(self._lanes)
+
+    @property
+    def buckets(self) -> int:
+        """Rate-limit states kept now."""
+        return len(self._buckets)
+
+    @property
+    def queued_bytes(self) -> int:
+        return self._bytes
+
+    def admits(self, key: str) -> bool:
+        """The policy's admission check (counted when refused); True without one."""
+        admit = self.policy.admit
+        if admit is None:
+            return True
+        try:
+            ok = admit(key)
+        except Exception:
+            logger.exception("admission check failed on %s", key)
+            ok = False
+        if not ok:
+            self.policy.stats.count("refused")
+        return ok
+
+    def _token(self, lane: str, now: float) -> bool:
+        policy = self.policy
+        if policy.rate_hz <= 0:
+            return True
+        bucket = self._buckets.get(lane)
+        if bucket is None:
+            bucket = self._buckets[lane] = [policy.burst, now]
+            if len(self._buckets) > policy.max_buckets:
+                self._buckets.popitem(last=False)
+        else:
+            self._buckets.move_to_end(lane)
+            bucket[0] = min(policy.burst, bucket[0] + (now - bucket[1]) * policy.rate_hz)
+            bucket[1] = now
+        if bucket[0] < 1.0:
+            return False
+        bucket[0] -= 1.0
+        return True
+
+    def put(self, key: str, payload: bytes) -> None:
+        """Queue one datagram (already admitted) and make sure the loop will take it."""
+        policy = self.policy
+        stats = policy.stats
+        lane = key
+        if policy.by_kind and len(payload) > 3:
+            lane = f"{key}#{payload[2]}"
+            if payload[3] & Flags.AUTH and not _digest_signed(payload):
+                lane += "c"  # it carries its signer's certificate: never replaced by a digest
+        now = self._time()
+        with self._lock:
+            if not self.active:
+                return
+            if not self._token(lane, now):
+                stats.count("rate_limited")
+                return
+            queue = self._lanes.get(lane)
+            if queue is None:
+                if len(self._lanes) >= policy.max_lanes:
+                    stats.count("overflow")
+                    return
+                queue = self._lanes[lane] = deque()
+            while len(queue) >= policy.depth:
+                self._bytes -= len(queue.popleft()[1])
+                stats.count("coalesced")
+            if self._bytes + len(payload) > policy.max_bytes:
+                if not queue:
+                    del self._lanes[lane]
+                stats.count("overflow")
+                return
+            queue.append((key, payload, now))
+            self._bytes += len(payload)
+            stats._queued(len(self._lanes), self._bytes)
+            if self._scheduled:
+                return
+            self._scheduled = True
+        self._wake()
+
+    def _wake(self) -> None:
+        try:
+            try:
+                running = asyncio.get_running_loop()
+            except RuntimeError:
+                running = None
+            if running is self.loop:
+                self.loop.call_soon(self._drain)
+            else:
+                self.loop.call_soon_threadsafe(self._drain)
+        except RuntimeError:  # the loop is closed: nothing will take it
+            with self._lock:
+                self._scheduled = False
+                self._lanes.clear()
+                self._bytes = 0
+            self.policy.stats.count("overflow")
+
+    def close(self) -> None:
+        """Drop what is queued; later datagrams are ignored."""
+        with self._lock:
+            self.active = False
+            self._lanes.clear()
+            self._buckets.clear()
+            self._bytes = 0
+
+    def _drain(self) -> None:
+        """One loop turn: deliver round robin until the batch or the budget is used up."""
+        policy = self.policy
+        start = self._time()
+        done = 0
+        while True:
+            with self._lock:
+                if not self._lanes or not self.active:
+                    self._scheduled = False
+                    return
+                lane, queue = next(iter(self._lanes.items()))
+                key, payload, arrived = queue.popleft()
+                self._bytes -= len(payload)
+                if queue:
+                    self._lanes.move_to_end(lane)
+                else:
+                    del self._lanes[lane]
+            try:
+                self._deliver(key, payload)
+            except Exception:
+                logger.exception("handler failed on a datagram from %s", key)
+            end = self._time()
+            policy.stats._delivered(end - arrived)
+            done += 1
+            if done >= policy.batch or end - start >= policy.budget_s:
+                break
+        with self._lock:
+            if not self._lanes or not self.active:
+                self._scheduled = False
+                return
+        self.loop.call_soon(self._drain)
+
+
 # --------------------------------------------------------------------------- interface
 
 
@@ -206,8 +514,11 @@ class Transport(Protocol):
     def publish(self, key: str, payload: bytes, qos: Qos) -> None:
         """Send one datagram on ``key`` (never blocks for V2X QoS)."""
 
-    def subscribe(self, keyexpr: str, handler: Handler) -> Subscription:
-        """Call ``handler(key, payload)`` on the loop for every datagram matching ``keyexpr``."""
+    def subscribe(
+        self, keyexpr: str, handler: Handler, policy: ReceivePolicy | None = None
+    ) -> Subscription:
+        """Call ``handler(key, payload)`` on the loop for every datagram matching ``keyexpr``
+        (through a bounded :class:`Inbox` when a ``policy`` is given)."""
 
     def declare_liveliness(self, key: str) -> Subscription:
         """Announce this node alive on ``key`` until closed (or the process dies)."""
@@ -344,12 +655,13 @@ class _Closable(Protocol):
 class _ZenohHandle:
     """One declared Zenoh entity (subscriber, liveliness token or watch)."""
 
-    __slots__ = ("_entity", "_owner", "active", "key")
+    __slots__ = ("_entity", "_owner", "active", "inbox", "key")
 
     def __init__(self, owner: ZenohTransport, key: str) -> None:
         self._owner = owner
         self.key = key
         self.active = True
+        self.inbox: Inbox | None = None
         self._entity: _Undeclarable | None = None
 
     def close(self) -> None:
@@ -357,6 +669,8 @@ class _ZenohHandle:
 
     def _undeclare(self) -> None:
         self.active = False
+        if self.inbox is not None:
+            self.inbox.close()
         entity, self._entity = self._entity, None
         if entity is not None:
             try:
@@ -506,7 +820,9 @@ class ZenohTransport:
 
     # -- subscribing
 
-    def subscribe(self, keyexpr: str, handler: Handler) -> Subscription:
+    def subscribe(
+        self, keyexpr: str, handler: Handler, policy: ReceivePolicy | None = None
+    ) -> Subscription:
         validate_key(keyexpr, wildcards=True)
         with self._lock:
             session = self._require_session()
@@ -515,15 +831,19 @@ class ZenohTransport:
                 raise TransportError("transport not open")
             handle = _ZenohHandle(self, keyexpr)
             deliver = self._deliverer(handle, handler)
+            inbox = None if policy is None else Inbox(loop, deliver, policy)
+            handle.inbox = inbox
 
             def on_sample(sample: zenoh.Sample) -> None:
-                # Runs on a Zenoh thread: copy, hand over, never raise.
+                # Runs on a Zenoh thread: check the key, copy, hand over, never raise.
                 try:
                     if sample.kind != zenoh.SampleKind.PUT:
                         return
                     key = str(sample.key_expr)
-                    data = sample.payload.to_bytes()
-                    loop.call_soon_threadsafe(deliver, key, data)
+                    if inbox is None:
+                        loop.call_soon_threadsafe(deliver, key, sample.payload.to_bytes())
+                    elif inbox.admits(key):
+                        inbox.put(key, sample.payload.to_bytes())
                 except Exception:
                     self.dropped += 1
 
@@ -659,7 +979,7 @@ class MemoryBus:
 class _MemoryHandle:
     """A subscription, token or watch on a :class:`MemoryBus`."""
 
-    __slots__ = ("active", "callback", "key", "owner")
+    __slots__ = ("active", "callback", "inbox", "key", "owner")
 
     def __init__(
         self,
@@ -671,11 +991,17 @@ class _MemoryHandle:
         self.key = key
         self.callback = callback
         self.active = True
+        self.inbox: Inbox | None = None
 
     def post(self, key: str, value: bytes | bool) -> None:
         loop = self.owner._loop
         if loop is None or loop.is_closed():
             self.owner.dropped += 1
+            return
+        inbox = self.inbox
+        if inbox is not None and isinstance(value, bytes):
+            if inbox.admits(key):
+                inbox.put(key, value)
             return
         try:
             running = asyncio.get_running_loop()
@@ -695,6 +1021,8 @@ class _MemoryHandle:
             logger.exception("handler for %s failed on %s", self.key, key)
 
     def close(self) -> None:
+        if self.inbox is not None:
+            self.inbox.close()
         self.owner._release(self)
 
 
@@ -762,10 +1090,17 @@ class MemoryTransport:
             self._require_open()
             self._handles.append(handle)
 
-    def subscribe(self, keyexpr: str, handler: Handler) -> Subscription:
+    def subscribe(
+        self, keyexpr: str, handler: Handler, policy: ReceivePolicy | None = None
+    ) -> Subscription:
         validate_key(keyexpr, wildcards=True)
         handle = _MemoryHandle(self, keyexpr, handler)
         self._track(handle)
+        if policy is not None:
+            loop = self._loop
+            if loop is None:  # cannot happen once open
+                raise TransportError("transport not open")
+            handle.inbox = Inbox(loop, handle._run, policy)
         with self.bus._lock:
             self.bus._subscriptions.append(handle)
         return handle

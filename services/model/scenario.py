@@ -404,7 +404,26 @@ class VehicleParams(_Model):
     control_time_constant_s: PosF = 0.4
     """Speed error to acceleration command gain is 1 / this [s]."""
     fp_stale_s: PosF = 0.5
-    """Received future paths older than this are forgotten [s]."""
+    """Received future paths older than this are forgotten [s] (under ``fp_rule =
+    "change"`` plus ``fp_refresh_s``: see :meth:`Scenario.fp_hold_s`)."""
+    fp_rule: Literal["periodic", "change"] = "periodic"
+    """When a car sends its future path (``services.vehicle.fp_rule``): "periodic" every
+    planning tick (the paper's 10 Hz), "change" only when it deviates from the last one
+    sent by more than ``fp_change_m``, on a mode change, and at least every
+    ``fp_refresh_s``. Scenario-wide (not a per-car override): every receiver's expiry
+    follows it."""
+    fp_change_m: PosF = 0.5
+    """``fp_rule = "change"``: largest deviation [m] between the new path and the last one
+    sent, compared at the same times, that is not sent."""
+    fp_refresh_s: PosF = 1.0
+    """``fp_rule = "change"``: a path is sent at least this often [s]."""
+    ap_rule: Literal["periodic", "change"] = "periodic"
+    """The same for the autonomous path to the RSU (while coordinated): "change" sends
+    it on a deviation over ``fp_change_m``, a mode change, and at least every
+    ``ap_refresh_s``. The RSU answers each with a coordinated path, so under "change"
+    the car's ``coordinated_timeout_s`` grows by ``ap_refresh_s``."""
+    ap_refresh_s: PosF = 0.2
+    """``ap_rule = "change"``: the autonomous path is sent at least this often [s]."""
 
 
 class VehicleParamsOverrides(_Model):
@@ -718,6 +737,7 @@ class Scenario:
             self._vehicle_params[v.id] = _merged(sp.vehicle_params, v.params)
         self.vehicles: tuple[VehicleSpec, ...] = tuple(resolved)
         self._check_flows()
+        self._check_fp_rule()
         self._pack_lanes()
 
         for i, r in enumerate(sp.rsus):
@@ -730,6 +750,37 @@ class Scenario:
             self._rsus[r.id] = r
             self._rsu_params[r.id] = self._check_rsu_params(
                 _merged(sp.rsu_params, r.params), f"rsus[{i}]", r.params
+            )
+
+    def _check_fp_rule(self) -> None:
+        """Under ``fp_rule = "change"`` a held path must still cover the time it is used
+        for: ``fp_refresh_s`` plus the longest expiry must fit the horizon ``t_free_s``,
+        and the refresh must be at least one planning period."""
+        vp, p = self.spec.vehicle_params, self.spec.params
+        if vp.ap_rule == "change" and vp.ap_refresh_s < 1.0 / p.planning_hz - 1e-9:
+            raise self._err(
+                "vehicle_params.ap_refresh_s",
+                f"{vp.ap_refresh_s} s is shorter than one planning period "
+                f"({1.0 / p.planning_hz:g} s)",
+            )
+        if vp.fp_rule == "periodic":
+            return
+        base = max(
+            p.reservation_expiry_s,
+            vp.fp_stale_s,
+            *(v.fp_stale_s for v in self._vehicle_params.values()),
+        )
+        if vp.fp_refresh_s + base > p.t_free_s:
+            raise self._err(
+                "vehicle_params.fp_refresh_s",
+                f"{vp.fp_refresh_s} s plus the expiry {base} s exceeds the path horizon "
+                f"t_free_s = {p.t_free_s} s: a held path would run out before it expires",
+            )
+        if vp.fp_refresh_s < 1.0 / p.planning_hz - 1e-9:
+            raise self._err(
+                "vehicle_params.fp_refresh_s",
+                f"{vp.fp_refresh_s} s is shorter than one planning period "
+                f"({1.0 / p.planning_hz:g} s)",
             )
 
     def _check_flows(self) -> None:
@@ -787,12 +838,14 @@ class Scenario:
         return {f.id: self._flow_arrivals(f, seed) for f in self.spec.flows}
 
     def require_no_flows(self, harness: str) -> None:
-        """Refuse ``[[flows]]`` where ``harness`` cannot run them yet: the daemons and the
-        lab start one process per car named in ``[[vehicles]]`` (flows run in-process)."""
+        """Refuse ``[[flows]]`` where ``harness`` needs every car named before it starts: a
+        daemon loads the plain file ``crosspath up`` expands for the run's seed
+        (``services.supervise.expand``), the network lab does not expand flows yet."""
         if self.spec.flows:
             raise ScenarioError(
                 "flows",
-                f"{harness} runs only [[vehicles]]; flows run in the in-process harness "
+                f"{harness} runs only [[vehicles]]; run flows with crosspath up (it expands "
+                "them for the run's seed into <run dir>/scenario.toml) or in-process "
                 "(crosspath sim, services.api.simulate)",
                 self.source,
             )
@@ -960,6 +1013,16 @@ class Scenario:
         """The RSU's knobs: ``[rsu_params]`` with its own ``params`` overrides. KeyError if
         unknown."""
         return self._rsu_params[rsu_id]
+
+    def fp_hold_s(self, base_s: float) -> float:
+        """How long a receiver keeps a car's future path after hearing it [s]: ``base_s``
+        (the RSU's ``reservation_expiry_s``, a car's ``fp_stale_s``) under the periodic
+        rule; under ``fp_rule = "change"`` a quiet car sends only every ``fp_refresh_s``,
+        so ``fp_refresh_s + base_s`` (the same loss margin after the longest silence).
+        One owner for both sides (``services.rsu.config.rsu_config``,
+        ``services.vehicle.agent``), so that no path expires between two sends."""
+        vp = self.spec.vehicle_params
+        return base_s if vp.fp_rule == "periodic" else vp.fp_refresh_s + base_s
 
     def vehicle_params(self, vehicle_id: str) -> VehicleParams:
         """The car's planner and controller knobs: ``[vehicle_params]`` with its own

@@ -128,7 +128,8 @@ def rsu_config(scenario: Scenario, rsu_id: str, policy: Policy) -> RsuConfig:
         headway_s=p.headway_s,
         t_collision_s=p.t_collision_s,
         t_free_s=p.t_free_s,
-        expiry_s=p.reservation_expiry_s,
+        # held longer when cars send their future path on change only (fp_rule)
+        expiry_s=scenario.fp_hold_s(p.reservation_expiry_s),
         v_max_mps=p.v_max_mps,
         accel_mps2=p.accel_mps2,
         decel_comfort_mps2=p.decel_comfort_mps2,

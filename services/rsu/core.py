@@ -30,6 +30,52 @@ traceback and exits, see ``services.edge.shell``).
 ``tick(now)`` (10 Hz) expires silent cars, repeats pending commands every
 ``command_repeat_s`` and sends the beacon every ``beacon_period_s``.
 
+The invariant (issue 12), what every RSU step keeps, tested as a hypothesis property in
+``tests/rsu/test_invariant.py`` (N cars at a 4-way intersection with turns, both
+policies, cars following their coordinated paths exactly) and cause by cause in
+``tests/rsu/test_issue12_causes.py``:
+
+1. After every step, no two paths the RSU has committed to (the coordinated paths it
+   sent, the future paths of the cars it does not coordinate: its table) conflict
+   within ``T_collision``, by the table's rule, which counts cars in the same lane (a
+   follower a body length and a metre behind, ``services.rsu.reservation``). When a
+   conflict appears, the car that must yield (``_yields``) gets a path that avoids it
+   in the same step; a ``C_FAST`` car settles its conflicts within ``T_free``.
+2. A car that follows its coordinated path never drives into the car ahead: a
+   ``C_FAST`` plan is retimed behind every car ahead in its lane
+   (``VelocityManager.behind_leaders``), a stop stops a follow distance behind where
+   the car ahead ends its path, and a follower always yields to the car ahead.
+3. No car is told ``C_FAST`` on a path that was not checked: the plan that is sent
+   (not the car's own path) is checked against the table over ``T_free`` with the
+   release margins, and against the crossing order of committed cars.
+4. A car changes mode a bounded number of times per crossing: the first
+   ``FREE_MODE_CHANGES`` freely, then promotions and releases at most every
+   ``MODE_DWELL_S``, after ``MAX_MODE_CHANGES`` every ``LATE_DWELL_S``; a ``C_SLOW``
+   car is released only when its own path is clear over ``T_free`` by the margins.
+5. No car waits forever while its way is free: a ``C_SLOW`` car whose path is clear
+   and which is approaching is promoted (dwell permitting).
+
+Status: the property holds for ``slot``; for ``paper`` it still fails where a turning
+car merges into a lane a straight car also uses (``KNOWN_FAILURE`` in the test).
+
+Limits, stated: a car that can no longer stop before the zone (committed) keeps its
+way, so a conflict between two committed cars cannot be undone by the RSU, only
+prevented; the property test starts every car where it can still stop.
+
+Several RSUs (issue 12): each RSU coordinates a car only while it approaches that
+RSU's zone (in coverage, its path entering the zone within ``T_free``) and terminates it
+when it leaves the zone, so along a corridor a car is handed from one intersection's
+RSU to the next as it passes each zone. The car sends its autonomous paths only to the
+RSU whose command it took last (``services.vehicle.agent``), and a core ignores paths
+addressed to another RSU (``foreign_rsu``). Where coverages overlap, the car belongs to
+the RSU of the zone it reaches next on its route: the previous RSU has let it go on
+leaving its zone. Not enforced yet: a second RSU that sees the car approaching its
+zone while the first still coordinates it (zones closer than ``T_free`` at the car's
+speed) can command it too; a future path carries no RSU id, so the core cannot tell
+"coordinated by another RSU" from "coordinated by my forgotten self" (which it must
+take back); the guard belongs on the car side (ignore another RSU's commands while
+coordinated, until terminated).
+
 A new core (a cold start or a restart after a crash) first listens for
 ``listen_s`` (default one ``expiry_s``) and keeps the crossing order of committed
 cars (both in ``services.rsu.modes``).
@@ -62,7 +108,14 @@ from services.model.types import Policy
 from services.rsu import paths
 from services.rsu.config import RsuConfig
 from services.rsu.modes import Action, RsuEvent, transition
-from services.rsu.reservation import Conflict, ReservationTable, oversize, within_wire_bounds
+from services.rsu.reservation import (
+    LANE_SLACK_M,
+    SAME_WAY_RAD,
+    Conflict,
+    ReservationTable,
+    oversize,
+    within_wire_bounds,
+)
 from services.rsu.velocity import SpeedPlan, VelocityManager
 
 __all__ = ["Outgoing", "Policy", "RsuConfig", "RsuCore", "path_problem"]
@@ -72,6 +125,19 @@ log = logging.getLogger("crosspath.rsu")
 FloatArray = npt.NDArray[np.float64]
 
 _DUE_SLACK_S = 1e-6  # a deadline this close counts as reached (float rounding)
+
+MODE_DWELL_S = 0.5
+"""A car is promoted or released no sooner than this after its last mode change [s]
+(issue 12, cause 4: a follower flipped C_FAST <-> C_SLOW every 0.1 s)."""
+FREE_MODE_CHANGES = 2
+"""Mode changes per crossing made without any dwell."""
+MAX_MODE_CHANGES = 6
+"""Mode changes per crossing after which a car is promoted or released only every
+``LATE_DWELL_S``: a car that cannot find its way in a few changes waits longer between
+tries, rather than flip its mode every half second (it still gets through: a car whose
+way is free is never held forever)."""
+LATE_DWELL_S = 3.0
+"""Dwell between promotions and releases after ``MAX_MODE_CHANGES`` [s]."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -109,6 +175,8 @@ class _Car:
     autonomous: VehiclePath | None = None  # latest path it would drive alone
     pending: _Pending | None = None
     claim: Mode = Mode.AUTO  # the mode its latest future path shows
+    changes: int = 0  # mode changes the RSU made in this crossing
+    changed_at: float = -math.inf  # when the last one was [s]
 
     def observe(self, path: VehiclePath) -> None:
         if path.header.time_us >= self.state_us:
@@ -474,13 +542,25 @@ class RsuCore:
     def _yields(self, car: _Car, car_points: FloatArray, other: _Car) -> bool:
         """Must ``car`` (whose path is ``car_points``) give way to ``other``?
 
-        A car that can no longer stop before the zone never yields to one that can.
+        A follower yields to the car ahead of it in its lane, and never the other way.
+        A car that can no longer stop before the zone never yields to one that can. Then
+        (issue 12, cause 3): a ``C_SLOW`` car's entry is already its stop (or slot) path,
+        the most it can give, so whoever conflicts with it yields, ``C_FAST`` too; a
+        ``C_FAST`` car has priority over an ``AUTO`` one; between two ``C_FAST`` cars
+        the later arriver at the zone yields.
         """
+        if self._ahead_in_lane(other, car, car_points):
+            return True  # a follower never has the way over the car ahead of it
+        other_entry = self.table.get(other.vehicle)
+        if other_entry is not None and self._ahead_in_lane(car, other, other_entry.points):
+            return False
         car_committed, other_committed = self._committed(car, car_points), self._committed(other)
         if car_committed != other_committed:
             return other_committed
-        fast = Mode.C_FAST
-        if car.mode == fast and other.mode != fast:
+        fast, slow = Mode.C_FAST, Mode.C_SLOW
+        if other.mode == slow:
+            return True
+        if car.mode == fast and other.mode == Mode.AUTO:
             return False
         if other.mode == fast and car.mode != fast:
             return True
@@ -492,6 +572,49 @@ class RsuCore:
             return (mine, car.vehicle) > (theirs, other.vehicle)
         return True  # neither committed: the path already in the table keeps its way
 
+    def _ahead_in_lane(self, lead: _Car, car: _Car, car_points: FloatArray) -> bool:
+        """``lead`` is ahead of ``car`` in its lane: it stands on ``car``'s path (within
+        half their widths plus ``LANE_SLACK_M`` of it), further on than ``car``, heading
+        the same way (within ``SAME_WAY_RAD``)."""
+        if car_points.shape[0] < 2:
+            return False
+        s_lead, off, i = paths.project(car_points, lead.x, lead.y)
+        if off > 0.5 * (car.width + lead.width) + LANE_SLACK_M:
+            return False
+        s_car, _, _ = paths.project(car_points, car.x, car.y)
+        if s_lead <= s_car:
+            return False
+        heading = paths.heading_of(car_points, i)
+        return heading is not None and math.cos(lead.heading - heading) >= math.cos(SAME_WAY_RAD)
+
+    def _fast_plan(self, now: float, car: _Car, path: VehiclePath) -> SpeedPlan | None:
+        """The ``C_FAST`` plan ``car`` would get, if it may have it: the plan itself (not
+        the car's own path, issue 12 cause 2) is clear of the table over ``T_free`` with
+        the release margins, and keeps the crossing order of committed cars."""
+        cfg = self.config
+        plan = self.velocity.plan(car.vehicle, path, Mode.C_FAST, now, self.table)
+        found = self.table.conflicts(
+            car.vehicle, plan.points, now, cfg.t_free_s, (), *self._margins, shape=car.shape
+        )
+        if found:
+            self.counters["fast_plan_unclear"] += 1
+            return None
+        if self._order_clash(car, plan.points, now) is not None:
+            self.counters["order_kept"] += 1
+            return None
+        return plan
+
+    def _may_change(self, car: _Car, now: float) -> bool:
+        """Hysteresis in time (issue 12, cause 4): a car is promoted or released only
+        ``MODE_DWELL_S`` after its last mode change (from its ``FREE_MODE_CHANGES``-th
+        on: AUTO -> C_SLOW -> C_FAST, the usual crossing, is never held), ``LATE_DWELL_S``
+        once it has changed mode ``MAX_MODE_CHANGES`` times in this crossing. Demotions
+        for safety and the termination of a leaving car are never held back."""
+        if car.changes < FREE_MODE_CHANGES:
+            return True
+        dwell = MODE_DWELL_S if car.changes < MAX_MODE_CHANGES else LATE_DWELL_S
+        return now - car.changed_at >= dwell - _DUE_SLACK_S
+
     def _decide(self, now: float, car: _Car, path: VehiclePath) -> list[Outgoing]:
         """Judge a car on its autonomous path (see ``services.rsu.modes``) and act."""
         cfg = self.config
@@ -501,6 +624,7 @@ class RsuCore:
             event = RsuEvent.LEAVING
         else:
             if car.mode == Mode.C_FAST:
+                # judged on the plan it is sent (cause 2), its own path's speeds aside
                 plan = self.velocity.plan(car.vehicle, path, Mode.C_FAST, now, self.table)
                 query = plan.points
             else:
@@ -510,7 +634,11 @@ class RsuCore:
             found = self.table.conflicts(
                 car.vehicle, query, now, cfg.t_free_s, (), *margins, shape=car.shape
             )
-            horizon = now + cfg.t_collision_s
+            # A C_FAST car settles every conflict within T_free, not only within
+            # T_collision: two cars promoted while far apart first meet beyond
+            # T_collision, and by T_collision the one that must yield may no longer be
+            # able to stop (issue 12, found by the invariant's property test).
+            horizon = now + (cfg.t_free_s if car.mode == Mode.C_FAST else cfg.t_collision_s)
             near = [c for c in found if c.time <= horizon]
             if found:
                 self.counters["conflicts"] += 1
@@ -522,17 +650,19 @@ class RsuCore:
                     break
             if yields:
                 event = RsuEvent.CONFLICT
+            elif car.mode == Mode.C_FAST:
+                event = RsuEvent.NO_CONFLICT  # it keeps its way; the others yield below
             elif not found and self._approaching(car, path, now) and self._clear(car, query, now):
                 event = RsuEvent.FREE_APPROACHING
-                if car.mode != Mode.C_FAST:
-                    # Promotion to C_FAST: the plan it would get must keep the headway
-                    # to every committed car's zone occupancy, else it waits its turn.
-                    plan = self.velocity.plan(car.vehicle, path, Mode.C_FAST, now, self.table)
-                    clash = self._order_clash(car, plan.points, now)
-                    if clash is not None:
-                        self.counters["order_kept"] += 1
-                        event = RsuEvent.CONFLICT
-                        plan = None
+                plan = self._fast_plan(now, car, path) if self._may_change(car, now) else None
+                if plan is None:
+                    # it waits its turn: a C_SLOW car stays (new path), an AUTO car slows
+                    event = RsuEvent.CONFLICT
+            elif car.mode == Mode.C_SLOW and (found or not self._may_change(car, now)):
+                # stays C_SLOW (a new path): released only when its own path is clear
+                # over T_free by the margins (hysteresis: T_collision to slow it, T_free
+                # to let it go; issue 12, cause 4), and not within the dwell
+                event = RsuEvent.CONFLICT
             else:
                 event = RsuEvent.NO_CONFLICT
         out = self._apply(now, car, event, path, plan)
@@ -547,6 +677,10 @@ class RsuCore:
         """One transition of the table for ``car``, and what it sends."""
         self.counters[f"event_{event.name.lower()}"] += 1
         mode, action = transition(car.mode, event)
+        if mode != car.mode:
+            car.changes += 1
+            car.changed_at = now
+            self.counters["mode_changes"] += 1
         car.mode = mode
         out: list[Outgoing] = []
         vehicle = car.vehicle
@@ -579,13 +713,14 @@ class RsuCore:
             self.forget(vehicle)
 
     def _give_way_to(self, now: float, car: _Car, near: list[Conflict] | None) -> list[Outgoing]:
-        """A ``C_FAST`` car has priority: every car its path conflicts with soon must yield."""
+        """A ``C_FAST`` car has priority: every car its path conflicts with (within
+        ``T_free``) must yield, unless ``_yields`` says the C_FAST car is the one to."""
         if near is None:
             entry = self.table.get(car.vehicle)
             if entry is None:
                 return []
             near = self.table.conflicts(
-                car.vehicle, entry.points, now, self.config.t_collision_s, shape=car.shape
+                car.vehicle, entry.points, now, self.config.t_free_s, shape=car.shape
             )
         out: list[Outgoing] = []
         for conflict in near:

@@ -39,6 +39,13 @@ Which path is judged, and who yields (our reading of the paper, where it is sile
   mode conflict within ``T_collision``, the other one gets ``CONFLICT`` (is put
   into ``C_SLOW``), whoever sent the path. Between two ``C_FAST`` cars the
   later arriver at the zone (larger zone entry time; tie: larger id) yields.
+* Made safe (ours, issue 12; ``services.rsu.core``, "The invariant"): a ``C_FAST``
+  car is judged on the plan it is sent, promoted only when that plan is clear over
+  ``T_free``, and settles its conflicts within ``T_free``; a ``C_SLOW`` car's path is
+  all it can give, so a car that conflicts with it yields, ``C_FAST`` too; a follower
+  yields to the car ahead in its lane; a ``C_SLOW`` car is released (``NO_CONFLICT``
+  -> ``AUTO``) only when its path is clear over ``T_free`` by the margins; after two
+  mode changes, promotions and releases wait a dwell (bounded changes per crossing).
 * Hysteresis (ours): conflicts are judged on sampled points, so a pair at the
   edge of ``D_margin`` / headway can appear and vanish as a path is re-sent
   with its points 0.1 s further on. To keep that from flipping modes 10 times

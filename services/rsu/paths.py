@@ -233,6 +233,40 @@ def retime(points: FloatArray, speeds: FloatArray, t0: float) -> FloatArray:
     return out
 
 
+def project(xy: FloatArray, x: float, y: float) -> tuple[float, float, int]:
+    """Where the point (x, y) [m] projects on the polyline ``xy`` (M >= 2, 2+ columns):
+    (arc length [m], distance from the line [m], index of the segment's first point).
+    Repeated points are skipped; ``(0, distance to the first point, 0)`` for a polyline
+    that never moves."""
+    pts = np.asarray(xy, dtype=np.float64)[:, :2]
+    seg = np.diff(pts, axis=0)
+    seg_len = np.hypot(seg[:, 0], seg[:, 1])
+    ok = seg_len > _EPS
+    if pts.shape[0] < 2 or not ok.any():
+        return 0.0, math.hypot(x - float(pts[0, 0]), y - float(pts[0, 1])), 0
+    unit = np.where(ok[:, None], seg / np.where(ok, seg_len, 1.0)[:, None], 0.0)
+    rel = np.column_stack([x - pts[:-1, 0], y - pts[:-1, 1]])
+    along = np.clip(np.einsum("ij,ij->i", rel, unit), 0.0, seg_len)
+    foot = pts[:-1] + unit * along[:, None]
+    dist = np.hypot(foot[:, 0] - x, foot[:, 1] - y)
+    dist[~ok] = np.inf
+    i = int(np.argmin(dist))
+    s0 = float(np.concatenate(([0.0], np.cumsum(seg_len)))[i])
+    return s0 + float(along[i]), float(dist[i]), i
+
+
+def heading_of(xy: FloatArray, index: int) -> float | None:
+    """Heading [rad] of the polyline's segment ``index`` (or the nearest one that moves
+    before or after it); None for a polyline that never moves."""
+    pts = np.asarray(xy, dtype=np.float64)[:, :2]
+    seg = np.diff(pts, axis=0)
+    moving = np.flatnonzero(np.hypot(seg[:, 0], seg[:, 1]) > _EPS)
+    if moving.size == 0:
+        return None
+    j = int(moving[np.argmin(np.abs(moving - index))])
+    return math.atan2(float(seg[j, 1]), float(seg[j, 0]))
+
+
 def zone_span(points: FloatArray, polygon: ConvexZone | npt.ArrayLike) -> tuple[int, int] | None:
     """(first index inside the zone, first index after leaving it again) or None.
 

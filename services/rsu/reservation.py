@@ -35,6 +35,27 @@ bus is in the table. Cell coordinates wrap modulo 2**21 per axis when packed
 into one integer key; a wrap only adds candidates (the exact check removes
 them), it never loses a conflict.
 
+Same-lane followers (ours, issue 12): ``d_margin`` is a crossing margin; two 4.5 m
+cars one behind the other in a lane overlap long before their centres are 2.8 m
+apart. So a pair of points also conflicts when:
+
+* their paths head the same way there (within :data:`SAME_WAY_RAD`; a path that
+  never moves has no heading and is in the way of any moving path; two that never
+  move cannot run into each other),
+* they are in one lane: less than half the two widths plus :data:`LANE_SLACK_M`
+  apart sideways (two cars side by side in adjacent lanes are not),
+* their centres are within the *follow distance* ``(L1 + L2) / 2 + follow_gap_m``
+  (lengths capped as above; default gap 1.0 m: 5.5 m for two standard cars),
+* and their times differ by less than ``follow_window_s`` (default 0.3 s: more than
+  half the 0.5 s spacing of the points holding a stop, so no stop is missed).
+
+That is "a follower is never less than a body length and a metre behind the car
+ahead at the same moment"; the crossing rule still applies to the pair too. A query's
+``margin_s`` widens the follow window, its ``margin_m`` does not widen the follow
+distance: a car queued behind another (1.5 m gap, below) would never be clear by it. A car's
+own planner keeps a 1.5 m gap to a car it senses ahead (``emergency_gap_m``), so a
+standing queue is no conflict.
+
 ``naive_conflicts`` is the brute-force all-pairs reference (tests, benchmark).
 """
 
@@ -52,6 +73,7 @@ from services.model.scenario import DEFAULT_LENGTH_M, DEFAULT_WIDTH_M
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
+BoolArray = npt.NDArray[np.bool_]
 
 _AXIS_BITS = 21
 _MASK = (1 << _AXIS_BITS) - 1
@@ -66,6 +88,17 @@ MAX_BODY_LENGTH_M = 25.0
 MAX_BODY_WIDTH_M = 3.0
 """Widest body the margin grows for [m] (legal road vehicles are at most 2.6 m)."""
 _STANDARD_HALF_DIAGONAL = 0.5 * math.hypot(*STANDARD_SHAPE)
+SAME_WAY_RAD = math.radians(35.0)
+"""Two points whose paths head within this of each other there are in the same lane
+(a follower and the car ahead, or a merge) [rad]."""
+_SAME_WAY_COS = math.cos(SAME_WAY_RAD)
+FOLLOW_GAP_M = 1.0
+"""Default bumper-to-bumper gap a follower keeps to the car ahead at the same moment [m]."""
+LANE_SLACK_M = 0.5
+"""Same-way points more than half the two widths plus this apart sideways are in
+adjacent lanes, not one behind the other [m]."""
+FOLLOW_WINDOW_S = 0.3
+"""Default time window of the follow rule [s] (see the module docstring)."""
 _MAX_T_S = MAX_TIME_US / 1e6  # largest |t| [s]: the wire's bound on generation times
 _OUT_OF_BOUNDS = (
     f"path points must be finite, |x| and |y| <= {MAX_COORD_M:g} m, |t| <= {_MAX_T_S:g} s"
@@ -148,9 +181,68 @@ class Entry:
     keys: IntArray
     by_time: FloatArray  # the points sorted by pass time (stable), for the exact check
     growth: float = 0.0  # body_growth(length, width) [m]
+    heading_by_time: FloatArray | None = None  # path_headings, in by_time's order
 
     def expires_at(self, expiry_s: float) -> float:
         return self.updated + expiry_s
+
+
+def path_headings(points: FloatArray) -> FloatArray:
+    """Unit direction (N, 2) of travel at each point: of the segment leaving it, else of the
+    last segment of positive length before it (a held stop); NaN for a path that never
+    moves (it counts as heading every way in the follow rule)."""
+    n = points.shape[0]
+    out = np.full((n, 2), np.nan, dtype=np.float64)
+    if n < 2:
+        return out
+    seg = np.diff(points[:, :2], axis=0)
+    length = np.hypot(seg[:, 0], seg[:, 1])
+    moving = length > 1e-6
+    if not moving.any():
+        return out
+    unit = np.full_like(seg, np.nan)
+    unit[moving] = seg[moving] / length[moving, None]
+    # segment i leaves point i; carry the last moving segment forward (held stops), and
+    # the first one back (a path that starts with a hold)
+    idx = np.where(moving, np.arange(n - 1), -1)
+    idx = np.maximum.accumulate(idx)
+    first = int(np.flatnonzero(moving)[0])
+    idx[idx < 0] = first
+    out[:-1] = unit[idx]
+    out[-1] = out[-2]
+    return out
+
+
+MAX_POINT_GAP_S = 0.5
+"""Points of a stored or queried path are at most this far apart in time [s]: a longer
+segment (a future path holds a stop with two points, 10 s apart) gets points in between,
+so a pair of cars is never missed between two of them (issue 12: a stopped car's future
+path was invisible to the follow window and the headway after its first second)."""
+
+
+def densify(points: FloatArray, max_dt: float = MAX_POINT_GAP_S) -> FloatArray:
+    """``points`` with linearly interpolated points added wherever two consecutive ones
+    are more than ``max_dt`` [s] apart (the same array when none is)."""
+    n = points.shape[0]
+    if n < 2:
+        return points
+    dt = np.diff(points[:, 2])
+    long = dt > max_dt
+    if not long.any():
+        return points
+    pieces = np.where(long, np.ceil(dt / max_dt).astype(np.int64), 1)
+    idx = np.repeat(np.arange(n - 1), pieces)
+    starts = np.cumsum(pieces) - pieces
+    frac = (np.arange(idx.shape[0]) - starts[idx]) / pieces[idx]
+    a, b = points[idx], points[idx + 1]
+    body = a + (b - a) * frac[:, None]
+    out: FloatArray = np.vstack([body, points[-1:]])
+    return out
+
+
+def follow_distance(l1: float, l2: float, gap: float) -> float:
+    """Centre distance [m] two cars of lengths ``l1``, ``l2`` keep one behind the other."""
+    return 0.5 * (min(l1, MAX_BODY_LENGTH_M) + min(l2, MAX_BODY_LENGTH_M)) + gap
 
 
 def _pack(ix: IntArray, iy: IntArray, it: IntArray) -> IntArray:
@@ -159,14 +251,21 @@ def _pack(ix: IntArray, iy: IntArray, it: IntArray) -> IntArray:
 
 
 def _pair_conflict(
-    vehicle: str, q: FloatArray, o: FloatArray, d2: float, headway: float
+    vehicle: str,
+    q: FloatArray,
+    o: FloatArray,
+    d2: float,
+    headway: float,
+    follow: tuple[FloatArray, FloatArray, float, float, float] | None = None,
 ) -> Conflict | None:
     """Exact check of two windowed point sets; the one predicate both queries share.
 
     ``o`` must be sorted by time: only pairs less than one headway apart are
     enumerated (``searchsorted``, the bounds widened by far more than float
     rounding so that no pair is dropped), then tested with the exact predicate
-    ``dx² + dy² <= d2 and |dt| < headway``.
+    ``dx² + dy² <= d2 and |dt| < headway``; with ``follow`` (the headings of ``q`` and
+    ``o``, the squared follow distance, the follow window and the lateral reach), also
+    ``same way, |lateral| <= lat, dx² + dy² <= f2 and |dt| < window`` (module docstring).
     """
     n_q, n_o = q.shape[0], o.shape[0]
     if n_q == 0 or n_o == 0:
@@ -185,7 +284,22 @@ def _pair_conflict(
     oj = lo[qi] + (np.arange(total) - starts[qi])
     dx = q[qi, 0] - o[oj, 0]
     dy = q[qi, 1] - o[oj, 1]
-    hit = ((dx * dx + dy * dy) <= d2) & (np.abs(q[qi, 2] - o[oj, 2]) < headway)
+    dist2 = dx * dx + dy * dy
+    gap_t = np.abs(q[qi, 2] - o[oj, 2])
+    hit = (dist2 <= d2) & (gap_t < headway)
+    if follow is not None:
+        hq, ho, f2, window, lat = follow
+        uq, uo = hq[qi], ho[oj]
+        cos = uq[:, 0] * uo[:, 0] + uq[:, 1] * uo[:, 1]
+        # a path that never moves (no heading) is in the way of one that does
+        q_still, o_still = np.isnan(uq[:, 0]), np.isnan(uo[:, 0])
+        same_way = (cos >= _SAME_WAY_COS) | (q_still ^ o_still)
+        # lateral offset across the lane (the query's heading, else the other's)
+        ux = np.where(np.isnan(uq[:, 0]), uo[:, 0], uq[:, 0])
+        uy = np.where(np.isnan(uq[:, 1]), uo[:, 1], uq[:, 1])
+        side = np.abs(ux * dy - uy * dx)
+        in_lane = side <= lat
+        hit |= same_way & in_lane & (dist2 <= f2) & (gap_t < window)
     if not hit.any():
         return None
     qi = qi[hit]
@@ -206,7 +320,20 @@ def _pair_conflict(
 class ReservationTable:
     """Latest path per car, expiring ``expiry_s`` after its last refresh; space-time indexed."""
 
-    def __init__(self, d_margin_m: float = 2.8, headway_s: float = 1.0, expiry_s: float = 0.5):
+    def __init__(
+        self,
+        d_margin_m: float = 2.8,
+        headway_s: float = 1.0,
+        expiry_s: float = 0.5,
+        follow_gap_m: float = FOLLOW_GAP_M,
+        follow_window_s: float = FOLLOW_WINDOW_S,
+    ):
+        if not (math.isfinite(follow_gap_m) and follow_gap_m >= 0.0):
+            raise ValueError(f"follow_gap_m must be finite and >= 0, got {follow_gap_m!r}")
+        if not (math.isfinite(follow_window_s) and 0.0 <= follow_window_s <= headway_s):
+            raise ValueError(f"follow_window_s must be in [0, headway_s], got {follow_window_s!r}")
+        self.follow_gap_m = float(follow_gap_m)
+        self.follow_window_s = float(follow_window_s)
         for name, value in (("d_margin_m", d_margin_m), ("headway_s", headway_s)):
             if not (math.isfinite(value) and value > 0.0):
                 raise ValueError(f"{name} must be a positive finite number, got {value!r}")
@@ -275,9 +402,11 @@ class ReservationTable:
         length, width = float(shape[0]), float(shape[1])
         growth = body_growth(length, width)
         pts.flags.writeable = False
-        ix, iy, it = self._cells(pts)
+        # indexed and checked densified (MAX_POINT_GAP_S); the entry keeps the path as sent
+        dense = densify(pts) if bool(np.all(np.diff(pts[:, 2]) >= 0.0)) else pts
+        ix, iy, it = self._cells(dense)
         k = self._cells_for(growth)
-        if k and pts.shape[0]:
+        if k and dense.shape[0]:
             # entered in every cell its grown body reaches too (see the module docstring)
             plane = _plane_offsets(k)
             keys: IntArray = np.unique(
@@ -293,9 +422,11 @@ class ReservationTable:
                 index[key] = {vehicle}
             else:
                 cell.add(vehicle)
-        by_time = pts[np.argsort(pts[:, 2], kind="stable")] if pts.shape[0] else pts
+        order = np.argsort(dense[:, 2], kind="stable")
+        by_time = dense[order] if dense.shape[0] else dense
+        headings = path_headings(dense)[order] if dense.shape[0] else np.empty((0, 2))
         self._entries[vehicle] = Entry(
-            vehicle, pts, length, width, float(now), keys, by_time, growth
+            vehicle, pts, length, width, float(now), keys, by_time, growth, headings
         )
 
     def touch(self, vehicle: str, now: float) -> bool:
@@ -358,11 +489,46 @@ class ReservationTable:
         windowed: FloatArray = points[(t >= now) & (t <= now + horizon_s)]
         return windowed
 
-    def _window_sorted(self, entry: Entry, now: float, horizon_s: float) -> FloatArray:
+    def _window_sorted(
+        self, entry: Entry, now: float, horizon_s: float
+    ) -> tuple[FloatArray, FloatArray]:
         t = entry.by_time[:, 2]
         lo = int(np.searchsorted(t, now, side="left"))
         hi = int(np.searchsorted(t, now + horizon_s, side="right"))
-        return entry.by_time[lo:hi]
+        headings = entry.heading_by_time
+        if headings is None:
+            headings = np.full((entry.by_time.shape[0], 2), np.nan)
+        return entry.by_time[lo:hi], headings[lo:hi]
+
+    @staticmethod
+    def _densified(
+        points: FloatArray, now: float, horizon_s: float
+    ) -> tuple[FloatArray, BoolArray, FloatArray]:
+        """A query path densified (:func:`densify`, when its times run forward), the mask
+        of its points within ``[now, now + horizon_s]``, and those points."""
+        if points.shape[0] >= 2 and bool(np.all(np.diff(points[:, 2]) >= 0.0)):
+            points = densify(points)
+        t = points[:, 2]
+        inside = (t >= now) & (t <= now + horizon_s)
+        return points, inside, points[inside]
+
+    def _follow_reach(self, length: float) -> float:
+        """How far beyond ``d_margin`` the follow rule reaches for a car this long [m]
+        (against the longest body in the table), for the neighbourhood search."""
+        longest = max((e.length for e in self._entries.values()), default=length)
+        return max(0.0, follow_distance(length, longest, self.follow_gap_m) - self.d_margin_m)
+
+    def _query_shape(self, vehicle: str, shape: tuple[float, float] | None) -> tuple[float, float]:
+        if shape is not None:
+            return float(shape[0]), float(shape[1])
+        entry = self._entries.get(vehicle)
+        return STANDARD_SHAPE if entry is None else (entry.length, entry.width)
+
+    @staticmethod
+    def _lane_reach(w1: float, w2: float) -> float:
+        """Lateral offset [m] within which two same-way cars are in one lane: half their
+        widths plus :data:`LANE_SLACK_M` (less than a lane's width, 3.5 m for two cars)."""
+        return 0.5 * (min(w1, MAX_BODY_WIDTH_M) + min(w2, MAX_BODY_WIDTH_M)) + LANE_SLACK_M
 
     def _others(
         self, vehicle: str, now: float, exclude: Collection[str], candidates: Collection[str]
@@ -445,9 +611,13 @@ class ReservationTable:
         exclude: Collection[str] = (),
         prefer: Sequence[str] = (),
         shape: tuple[float, float] | None = None,
+        margin_m: float = 0.0,
+        margin_s: float = 0.0,
     ) -> Conflict | None:
         """Any one conflict (checking the cars in ``prefer`` first), or None: cheaper than all."""
-        scan = self._scan(vehicle, points, now, horizon_s, exclude, 0.0, 0.0, prefer, shape)
+        scan = self._scan(
+            vehicle, points, now, horizon_s, exclude, margin_m, margin_s, prefer, shape
+        )
         return next(scan, None)
 
     def _scan(
@@ -462,20 +632,27 @@ class ReservationTable:
         prefer: Sequence[str],
         shape: tuple[float, float] | None,
     ) -> Iterator[Conflict]:
-        q = self._window(_checked(points), now, horizon_s)
+        # densified first: a long segment may have no original point in the window
+        full, inside, q = self._densified(_checked(points), now, horizon_s)
         if q.shape[0] == 0:
             return
+        hq = path_headings(full)[inside]
         growth = self.growth_of(vehicle, shape)
+        length, width = self._query_shape(vehicle, shape)
         reach, headway = self._limits(margin_m + growth, margin_s)
-        found = self.candidates(q, margin_m, margin_s, growth)
+        extra = max(margin_m + growth, margin_m + self._follow_reach(length))
+        found = self.candidates(q, extra, margin_s, 0.0)
         others = self._others(vehicle, now, exclude, found)
         if prefer:
             rank = {v: i for i, v in enumerate(prefer)}
             others.sort(key=lambda e: rank.get(e.vehicle, len(rank)))
         for entry in others:
-            o = self._window_sorted(entry, now, horizon_s)
+            o, ho = self._window_sorted(entry, now, horizon_s)
             d = reach + entry.growth
-            conflict = _pair_conflict(entry.vehicle, q, o, d * d, headway)
+            f = follow_distance(length, entry.length, self.follow_gap_m)
+            lat = self._lane_reach(width, entry.width)
+            follow = (hq, ho, f * f, self.follow_window_s + margin_s, lat)
+            conflict = _pair_conflict(entry.vehicle, q, o, d * d, headway, follow)
             if conflict is not None:
                 yield conflict
 
@@ -491,13 +668,18 @@ class ReservationTable:
         shape: tuple[float, float] | None = None,
     ) -> list[Conflict]:
         """Same answer as ``conflicts`` by brute force: every point pair of every entry."""
-        q = self._window(_checked(points), now, horizon_s)
+        full, inside, q = self._densified(_checked(points), now, horizon_s)
+        hq = path_headings(full)[inside]
+        length, width = self._query_shape(vehicle, shape)
         reach, headway = self._limits(margin_m + self.growth_of(vehicle, shape), margin_s)
         found = []
         for entry in self._others(vehicle, now, exclude, list(self._entries)):
-            o = self._window_sorted(entry, now, horizon_s)
+            o, ho = self._window_sorted(entry, now, horizon_s)
             d = reach + entry.growth
-            conflict = _pair_conflict(entry.vehicle, q, o, d * d, headway)
+            f = follow_distance(length, entry.length, self.follow_gap_m)
+            lat = self._lane_reach(width, entry.width)
+            follow = (hq, ho, f * f, self.follow_window_s + margin_s, lat)
+            conflict = _pair_conflict(entry.vehicle, q, o, d * d, headway, follow)
             if conflict is not None:
                 found.append(conflict)
         found.sort(key=lambda c: (c.time, c.vehicle))

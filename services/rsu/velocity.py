@@ -64,7 +64,12 @@ import numpy.typing as npt
 from protocol.messages import Mode, VehicleLimits, VehiclePath
 from services.model.types import Policy
 from services.rsu import paths
-from services.rsu.reservation import ReservationTable
+from services.rsu.reservation import (
+    LANE_SLACK_M,
+    SAME_WAY_RAD,
+    ReservationTable,
+    follow_distance,
+)
 
 if TYPE_CHECKING:
     from services.rsu.config import RsuConfig
@@ -72,7 +77,13 @@ if TYPE_CHECKING:
 FloatArray = npt.NDArray[np.float64]
 
 _SAME_POINT_M = 1e-6
+_AT_REST_MPS = 0.25
+"""A path whose last segment is slower than this [m/s] ends at rest (issue 12, cause 1)."""
 _MAX_HOLDS = 20
+HARD_STOP_FACTOR = 2.0
+"""A stop short of the zone may brake up to this many times the comfortable deceleration
+(4 m/s² by default, within the 5 m/s² emergency limit)."""
+_STOP_SLACK_M = 0.5  # a stop behind a car ahead keeps this more than the follow distance
 _VC_GRID = 24
 _VC_ROUNDS = 3
 _COARSE_STEP_S = 0.5
@@ -132,6 +143,11 @@ def _track(path: VehiclePath, limits: VehicleLimits, now: float, t_free: float) 
     keep = d_all > _SAME_POINT_M
     keep[0] = True
     ends_stopped = pts.shape[0] == 1 or not bool(keep[-1])
+    if not ends_stopped and pts.shape[0] >= 2:
+        # a last segment of a few cm over a long time is a stop too (a future path drops
+        # points closer than 0.1 m, so its stop point may sit just past the last one)
+        dt_last = float(pts[-1, 2] - pts[-2, 2])
+        ends_stopped = dt_last > 0.0 and float(d_all[-1]) < _AT_REST_MPS * dt_last
     kept = pts[keep]
     d = paths.segment_lengths(kept)
     s = np.cumsum(d)
@@ -275,11 +291,15 @@ class VelocityManager:
         cfg = self.config
         track = _track(path, self.limits_of(path), now, cfg.t_free_s)
         if mode == Mode.C_FAST:
-            return self._fast(track)
+            return self.behind_leaders(vehicle, track, self._fast(track), now, table, exclude)
         if mode == Mode.C_SLOW:
+            limit = self.stop_limit(vehicle, track, now, table, exclude)
             if self.policy == Policy.SLOT:
-                return self._slot(vehicle, track, now, table, exclude)
-            return self._stop(track)
+                plan = self._slot(vehicle, track, now, table, exclude)
+                if plan.kind != "slot_fallback":
+                    return plan
+                return self._stop(track, "slot_fallback", limit)
+            return self._stop(track, "stop", limit)
         raise ValueError(f"no coordinated path for mode {mode!r}")
 
     def limits_of(self, path: VehiclePath) -> VehicleLimits:
@@ -290,13 +310,154 @@ class VelocityManager:
 
     # -- paper ----------------------------------------------------------------------------
 
-    def _stop(self, tr: _Track, kind: str = "stop") -> SpeedPlan:
-        """Brake comfortably from the current speed to the exact stop point, then hold."""
+    def _leaders(
+        self,
+        vehicle: str,
+        tr: _Track,
+        now: float,
+        table: ReservationTable,
+        exclude: Collection[str],
+    ) -> list[tuple[FloatArray, FloatArray, float]]:
+        """The cars ahead in this car's lane: per car, the times (K,) [s] and arc lengths
+        (K,) [m, along this car's path, non-decreasing] of its points while in the lane,
+        and whether it is still in the lane at its path's end (1.0) or leaves it (0.0)."""
+        out: list[tuple[FloatArray, FloatArray, float]] = []
+        if tr.xy.shape[0] < 2:
+            return out
+        for other in table:
+            entry = table.get(other)
+            if other == vehicle or other in exclude or entry is None:
+                continue
+            if not table.is_live(other, now) or entry.points.shape[0] == 0:
+                continue
+            lane = 0.5 * (tr.width + entry.width) + LANE_SLACK_M
+            p0 = entry.points[0]
+            first = paths.project(tr.xy, float(p0[0]), float(p0[1]))
+            if first[1] > lane or first[0] <= 0.0:
+                continue
+            pts = entry.points
+            proj = [paths.project(tr.xy, float(x), float(y)) for x, y in pts[:, :2].tolist()]
+            on = np.array([off <= lane for _, off, _ in proj])
+            stay = int(np.argmin(on)) if not on.all() else pts.shape[0]
+            s_l = np.maximum.accumulate(np.array([sv for sv, _, _ in proj[:stay]]))
+            out.append((pts[:stay, 2].copy(), s_l, 1.0 if stay == pts.shape[0] else 0.0))
+        return out
+
+    def behind_leaders(
+        self,
+        vehicle: str,
+        tr: _Track,
+        plan: SpeedPlan,
+        now: float,
+        table: ReservationTable,
+        exclude: Collection[str] = (),
+    ) -> SpeedPlan:
+        """``plan`` retimed so that the car passes every point of its path a headway (plus
+        the release margin) after each car ahead in its lane has passed ``d_margin``
+        further on, and the follow window after it has passed a follow distance on: a
+        ``C_FAST`` car follows the car ahead instead of catching it (issue 12). Where a
+        car ahead ends its path in the lane, this car holds a follow distance behind."""
+        leaders = self._leaders(vehicle, tr, now, table, exclude)
+        if not leaders:
+            return plan
+        cfg = self.config
+        pts = plan.points
+        s_me = paths.arc_length(pts)
+        t_new = pts[:, 2].copy()
+        for t_l, s_l, stays in leaders:
+            if t_l.shape[0] == 0:
+                continue
+            end = float(s_l[-1])
+            f = follow_distance(tr.length, tr.length, table.follow_gap_m) + cfg.release_margin_m
+            rules = (
+                (cfg.d_margin_m + cfg.release_margin_m, cfg.headway_s + cfg.release_margin_s),
+                (f, table.follow_window_s + cfg.release_margin_s),
+            )
+            for dist, gap_t in rules:
+                target = s_me + dist
+                when = np.interp(target, s_l, t_l, left=-math.inf, right=math.inf)
+                if stays == 0.0:
+                    when = np.where(target > end, float(t_l[-1]), when)
+                when = np.where(target < float(s_l[0]), -math.inf, when)
+                t_new = np.maximum(t_new, when + gap_t)
+        t_new = np.maximum.accumulate(t_new)
+        if np.array_equal(t_new, pts[:, 2]):
+            return plan
+        ok = np.isfinite(t_new)
+        m = int(np.argmin(ok)) if not ok.all() else t_new.shape[0]
+        if m == 0:
+            return plan
+        out = np.column_stack([pts[:m, :2], t_new[:m]])
+        speeds = np.minimum(plan.speeds[:m], paths.segment_speeds(out, tr.v0))
+        if m < pts.shape[0]:
+            hold = _holds(
+                float(out[-1, 0]), float(out[-1, 1]), float(out[-1, 2]), tr.t_end, cfg.hold_step_s
+            )
+            out = np.vstack([out, hold])
+            speeds = np.concatenate([speeds[:-1], [0.0], np.zeros(hold.shape[0])])
+        entry = paths.zone_entry_time(out, self.zone)
+        return SpeedPlan(out, speeds, plan.kind, entry)
+
+    def stop_limit(
+        self,
+        vehicle: str,
+        tr: _Track,
+        now: float,
+        table: ReservationTable,
+        exclude: Collection[str] = (),
+    ) -> float:
+        """How far along its path [m] a stopping car may go (issue 12, cause 5): short
+        of the zone (``stop_gap_m`` before it) when braking at up to ``HARD_STOP_FACTOR``
+        times its comfortable deceleration does it (a comfortable stop in the zone
+        blocks the crossing it was stopped for); to its
+        autonomous path's own end when that ends at rest (its planner stops there, e.g.
+        behind a car it senses), and to a follow distance behind where every car ahead
+        of it in its lane (in the table) ends its path; ``inf`` for no limit."""
+        limit = float(tr.s[-1]) if tr.v_ap[-1] <= 0.0 else math.inf
+        span = paths.zone_span(tr.xy, self.zone)
+        if span is not None and span[0] > 0:
+            # short of the zone, when braking up to HARD_STOP_FACTOR x comfortably can
+            edge = float(tr.s[span[0]]) - 0.5 * tr.length - self.config.stop_gap_m
+            if edge > 0.0 and tr.v0 * tr.v0 <= 2.0 * HARD_STOP_FACTOR * tr.decel * edge:
+                limit = min(limit, edge)
+        if tr.xy.shape[0] < 2:
+            return limit
+        for other in table:
+            entry = table.get(other)
+            if other == vehicle or other in exclude or entry is None:
+                continue
+            if not table.is_live(other, now) or entry.points.shape[0] == 0:
+                continue
+            lane = 0.5 * (tr.width + entry.width) + LANE_SLACK_M
+            first = paths.project(tr.xy, float(entry.points[0, 0]), float(entry.points[0, 1]))
+            last = paths.project(tr.xy, float(entry.points[-1, 0]), float(entry.points[-1, 1]))
+            if first[1] > lane or last[1] > lane or first[0] <= 0.0:
+                continue  # not in this lane, or not ahead
+            theirs = paths.heading_of(entry.points, entry.points.shape[0] - 1)
+            mine = paths.heading_of(tr.xy, last[2])
+            crossing = theirs is not None and mine is not None
+            if crossing and math.cos(theirs - mine) < math.cos(SAME_WAY_RAD):  # type: ignore[operator]
+                continue  # it ends crossing or leaving this lane
+            gap = follow_distance(tr.length, entry.length, table.follow_gap_m) + _STOP_SLACK_M
+            limit = min(limit, last[0] - gap)
+        return limit
+
+    def _stop(self, tr: _Track, kind: str = "stop", limit: float = math.inf) -> SpeedPlan:
+        """Brake comfortably from the current speed to the exact stop point, then hold;
+        harder when the stop must come sooner, at ``limit`` [m along the path] (a car
+        ahead, or the autonomous path's own stop)."""
         cfg = self.config
         b = tr.decel
         v0 = tr.v0
         s_stop = v0 * v0 / (2.0 * b)
-        v = np.sqrt(np.maximum(v0 * v0 - 2.0 * b * tr.s, 0.0))
+        if s_stop > limit:
+            s_stop = max(limit, 0.0)
+            b = v0 * v0 / (2.0 * s_stop) if s_stop > 1e-3 else math.inf
+        if math.isinf(b):
+            v = np.zeros_like(tr.s)  # stop where it is: nothing left to brake on
+            v[0] = v0
+        else:
+            v = np.sqrt(np.maximum(v0 * v0 - 2.0 * b * tr.s, 0.0))
         k = max(1, int(np.searchsorted(tr.s, s_stop, side="right")))  # points 0..k-1 reached
         xy, d, vk = tr.xy[:k], tr.d[:k], v[:k]
         if k < tr.s.shape[0] and s_stop > tr.s[k - 1] + 1e-3:
@@ -361,8 +522,18 @@ class VelocityManager:
             if plan is None:
                 impossible = True  # it can no longer wait that long: nor any longer
                 return None
+            # with the release margins as clearance (issue 12, cause 6): a slot at the
+            # exact edge of a conflict is lost again at the next re-plan
             hit = table.first_conflict(
-                vehicle, plan.points, now, cfg.t_free_s, exclude, culprit, (tr.length, tr.width)
+                vehicle,
+                plan.points,
+                now,
+                cfg.t_free_s,
+                exclude,
+                culprit,
+                (tr.length, tr.width),
+                cfg.release_margin_m,
+                cfg.release_margin_s,
             )
             if hit is None:
                 return plan

@@ -182,13 +182,22 @@ class Simulation:
         self.channel.send(now, key, payload, receivers)
 
     def _deliver(self, now: float) -> None:
+        # One datagram goes to every listener: decode and parse it once per batch and
+        # share the result (messages are frozen, their arrays read-only). With N cars
+        # this is N decodes per planning tick instead of N² (issue 14).
+        decoded: dict[int, tuple[bytes, str, tuple[Message, keyexpr.ParsedKey] | None]] = {}
         for d in self.channel.due(now):
-            try:
-                message = decode(d.payload)
-                parsed = keyexpr.parse(d.key)
-            except (DecodeError, ValueError):
+            memo = decoded.get(id(d.payload))
+            if memo is None or memo[0] is not d.payload or memo[1] != d.key:
+                try:
+                    memo = (d.payload, d.key, (decode(d.payload), keyexpr.parse(d.key)))
+                except (DecodeError, ValueError):
+                    memo = (d.payload, d.key, None)
+                decoded[id(d.payload)] = memo
+            if memo[2] is None:
                 self.counters["malformed"] = self.counters.get("malformed", 0) + 1
                 continue
+            message, parsed = memo[2]
             if d.receiver in self.left:
                 continue  # gone from the network
             if d.receiver in self.agents:

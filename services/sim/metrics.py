@@ -32,9 +32,10 @@ Definitions (times in s on the run's time base, distances in m):
   a stop within ``goal_tolerance_m`` of the goal (the final stop) is not counted.
 - **finished**: the car stood (speed < 0.1 m/s) within ``goal_tolerance_m`` of its
   goal at some step.
-- **insertion delay** (in-process harness, which calls :meth:`MetricsRecorder.inserted`):
-  time from the car's arrival (its start time) to its insertion at its route's start
-  (SUMO's depart delay); None for a car never inserted, and in daemon runs.
+- **insertion delay** (the in-process harness, and the monitor's replay of the daemons'
+  truth, ``services.sim.truth``, call :meth:`MetricsRecorder.inserted`): time from the
+  car's arrival (its start time) to its insertion at its route's start (SUMO's depart
+  delay); None for a car never inserted.
 - **free-flow time**: the least time to drive from the car's start offset to its goal
   alone, from rest to rest, under its ``v_max``, ``accel``, ``decel_comfort`` and the
   curve speed caps (``kinematics.curve_speed_cap``); actuator lag ignored

@@ -9,6 +9,7 @@ question the paper's blind corner asks.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import numpy as np
@@ -37,6 +38,18 @@ def sight_points(others: Sequence[TruthState]) -> FloatArray:
     return out
 
 
+def _within(other: TruthState, ego: TruthState, r2: float) -> bool:
+    """Centre within sqrt(``r2``) of ``ego``'s. Products, not ``**``: a far-off value (a
+    peer's ``x = 1e300``) gives inf, never an OverflowError, and NaN compares False."""
+    dx = other.x - ego.x
+    dy = other.y - ego.y
+    return dx * dx + dy * dy <= r2 and _finite_shape(other)
+
+
+def _finite_shape(other: TruthState) -> bool:
+    return all(math.isfinite(v) for v in (other.heading, other.length, other.width))
+
+
 def perceive(
     ego: TruthState,
     others: Sequence[TruthState],
@@ -47,11 +60,16 @@ def perceive(
 
     ``buildings`` are convex polygons; pass ``Scenario.occluders`` (pre-packed) in hot
     loops. ``sensor_range`` is in metres and compared with centre-to-centre distance.
+    Another car whose position or shape is not finite is never sensed (the daemons
+    validate truth on reception, ``services.edge.plumbing.TRUTH_BOUNDS``; this is the
+    second line); ValueError when ``ego``'s own position is not finite (our bug).
     """
     if not sensor_range >= 0.0:
         raise ValueError(f"sensor_range must be >= 0, got {sensor_range!r}")
+    if not (math.isfinite(ego.x) and math.isfinite(ego.y)):
+        raise ValueError(f"ego position must be finite, got ({ego.x!r}, {ego.y!r})")
     r2 = sensor_range * sensor_range
-    near = [o for o in others if o.id != ego.id and (o.x - ego.x) ** 2 + (o.y - ego.y) ** 2 <= r2]
+    near = [o for o in others if o.id != ego.id and _within(o, ego, r2)]
     if not near:
         return []
     vis = visible_mask((ego.x, ego.y), sight_points(near), buildings).reshape(len(near), 5)

@@ -20,8 +20,21 @@ when a step is *closed*:
   in the run (``unknown_vehicle``), a step more than :data:`FUTURE_TOLERANCE_S`
   wall seconds ahead of now (``future``: it would otherwise force every step up
   to it to be closed at once);
-- the run is over (``done_reason``) when a closed step reaches ``max_sim_s`` or
-  every car stands at its goal (``services.sim.car.all_at_goal``, all cars present).
+- the run is over (``done_reason``) when a closed step reaches ``max_sim_s``, when
+  every car has left the world, or when every car stands at its goal
+  (``services.sim.car.all_at_goal``, all cars present).
+
+Insertion and removal (issue 12), as the in-process harness (``services.sim.harness``):
+a car is in the world only between its insertion and its removal, and each report
+says where it is (``presence``): ``waiting`` (arrived at its start time but its entry
+is not clear yet: it is out of the world, the report only keeps the steps closing),
+``in``, or ``left`` (it stands at its goal: that step's truth is its last, then it
+sends no more). So a car is *expected* at step ``k`` from its arrival step (its start
+time, given as ``start_times``; without them every car is expected from step 0) up to
+its ``left`` step; a step nobody is expected at closes once run time reaches it. The
+replay records only ``in`` and ``left`` reports, and calls
+``MetricsRecorder.inserted`` at a car's first one, so a daemon run's ``delay_s``,
+``insertion_delay_s`` and summary are computed by the same code as the harness's.
 
 Safety metrics never mix steps (issue 16): :meth:`TruthSteps.metrics` replays
 the table of the closed steps into a fresh ``MetricsRecorder``, each step with
@@ -85,6 +98,7 @@ __all__ = [
     "TraceRow",
     "TruthSample",
     "TruthSteps",
+    "arrival_step",
     "replay_metrics",
     "trace_row",
 ]
@@ -129,6 +143,28 @@ class TruthSample(Protocol):
     def reason(self) -> str: ...
 
 
+def arrival_step(start_time: float, dt: float) -> int:
+    """The first physics step ``k`` whose run time ``k * dt`` [s] reaches ``start_time``
+    [s] (1e-9 s slack, as the harness's insertion test)."""
+    k = max(0, math.ceil(start_time / dt - 1e-6))
+    while k > 0 and (k - 1) * dt + 1e-9 >= start_time:
+        k -= 1
+    while k * dt + 1e-9 < start_time:
+        k += 1
+    return k
+
+
+def presence_of(r: TruthSample) -> str:
+    """A report's ``presence`` (``TruthReport.presence``); a sample without one is ``in``."""
+    value = getattr(r, "presence", "in")
+    return value if isinstance(value, str) else "in"
+
+
+def _present(r: TruthSample) -> bool:
+    """The report is truth of a car in the world (``in``, or ``left`` at that step)."""
+    return presence_of(r) != "waiting"
+
+
 def _positive(name: str, value: float, *, zero: bool = False) -> None:
     ok = math.isfinite(value) and (value >= 0.0 if zero else value > 0.0)
     if not ok:
@@ -151,6 +187,7 @@ class TruthSteps:
         max_sim_s: float,
         trace: bool = False,
         wait_s: float = TRUTH_WAIT_S,
+        start_times: Mapping[str, float] | None = None,
     ) -> None:
         if not vehicles or len(set(vehicles)) != len(vehicles):
             raise ValueError(f"need distinct vehicles, got {list(vehicles)}")
@@ -166,7 +203,8 @@ class TruthSteps:
         self.dt = 1.0 / scenario.params.physics_hz
         self.counters: collections.Counter[str] = collections.Counter()
         """``gaps`` (missing when closed), ``late``, ``duplicate``, ``future``,
-        ``unknown_vehicle``."""
+        ``unknown_vehicle``, ``out_of_world`` (a step before the car's arrival or after
+        its ``left`` report)."""
         self.next_step = 0
         """The first step not closed yet."""
         self.last_t: float | None = None
@@ -179,6 +217,20 @@ class TruthSteps:
         self._any_report = False
         self._max_step_seen = -1
         self._ahead_steps = max(1, round(AHEAD_S / self.dt))
+        self.start_times = None if start_times is None else dict(start_times)
+        """Each car's arrival [run s]: it is expected from then (None: from step 0)."""
+        st = self.start_times or {}
+        self._arrival = {v: arrival_step(float(st.get(v, 0.0)), self.dt) for v in self.vehicles}
+        self._left: dict[str, int] = {}
+        """Per car, the step of its ``left`` report (its last)."""
+
+    def expected(self, k: int) -> list[str]:
+        """The cars whose report step ``k`` waits for: arrived by then, not left before."""
+        return [
+            v
+            for v in self.vehicles
+            if self._arrival[v] <= k and (v not in self._left or k <= self._left[v])
+        ]
 
     @property
     def gaps(self) -> int:
@@ -203,11 +255,16 @@ class TruthSteps:
             return False
         if step >= self.next_step and (self.closed or self.done_reason is not None):
             return False  # after the end of the run
+        if step < self._arrival[vid] or (vid in self._left and step > self._left[vid]):
+            self.counters["out_of_world"] += 1  # before its arrival or after it left
+            return False
         reports = self._table.setdefault(step, {})
         if vid in reports:
             self.counters["duplicate"] += 1
         reports[vid] = report
         self._any_report = True
+        if presence_of(report) == "left":
+            self._left[vid] = min(step, self._left.get(vid, step))
         if step < self.next_step:
             self.counters["late"] += 1
             return True
@@ -233,7 +290,11 @@ class TruthSteps:
         while self.done_reason is None and not self.closed:
             k = self.next_step
             reports = self._table.get(k, {})
-            if len(reports) < len(self.vehicles):
+            need = self.expected(k)
+            if not need:
+                if now < k * self.dt:  # nobody in the world: close it when its time comes
+                    return
+            elif any(v not in reports for v in need):
                 overdue = now >= self._overdue_at(k)
                 ahead = self._max_step_seen >= k + self._ahead_steps
                 if not (overdue or ahead) or not self._any_report:
@@ -247,37 +308,60 @@ class TruthSteps:
     def next_deadline(self) -> float | None:
         """Run time [s] at which the next step is closed even if incomplete; None when
         over or when no car has reported yet (a report comes through :meth:`on_report`)."""
-        if self.done_reason is not None or self.closed or not self._any_report:
+        if self.done_reason is not None or self.closed:
             return None
-        return self._overdue_at(self.next_step)
+        k = self.next_step
+        if not self.expected(k):
+            return k * self.dt
+        if not self._any_report:
+            return None
+        return self._overdue_at(k)
 
     def _close_step(self, k: int, reports: Mapping[str, TruthSample]) -> None:
         t = k * self.dt
-        self.counters["gaps"] += len(self.vehicles) - len(reports)
+        self.counters["gaps"] += sum(1 for v in self.expected(k) if v not in reports)
         self.last_t = t
-        states = [r.state for r in reports.values()]
+        states = [r.state for r in reports.values() if _present(r)]
         if t >= self.max_sim_s:
             self.done_reason = f"max_sim_s ({self.max_sim_s:g} s) reached"
+        elif len(self._left) == len(self.vehicles) and max(self._left.values()) <= k:
+            self.done_reason = "every car has left at its goal"
         elif len(states) == len(self.vehicles) and all_at_goal(self.scenario, states):
             self.done_reason = "every car stands at its goal"
 
     # -- what the result is made of ------------------------------------------------
 
     def steps(self) -> Iterator[tuple[int, list[TruthSample]]]:
-        """Every closed step with the reports of that very step, cars in run order."""
+        """Every closed step with the reports of that very step of the cars in the world
+        (``waiting`` ones left out), cars in run order."""
         for k in range(self.next_step):
             reports = self._table.get(k, {})
-            yield k, [reports[v] for v in self.vehicles if v in reports]
+            yield k, [reports[v] for v in self.vehicles if v in reports and _present(reports[v])]
 
     def truth_gaps(self) -> dict[str, int]:
-        """Per car, the closed steps its truth is missing from (never filled in)."""
+        """Per car, the closed steps it was expected at whose report is missing (never
+        filled in)."""
         gaps = dict.fromkeys(self.vehicles, 0)
-        for _k, rows in self.steps():
-            present = {r.vehicle for r in rows}
-            for vid in self.vehicles:
-                if vid not in present:
+        for k in range(self.next_step):
+            reports = self._table.get(k, {})
+            for vid in self.expected(k):
+                if vid not in reports:
                     gaps[vid] += 1
         return gaps
+
+    def expected_receivers(self, n_rsus: int) -> dict[str, float]:
+        """How many nodes should receive each datagram of a stream, with cars in the world
+        only part of the run (a car listens from its insertion to its removal): a future
+        path reaches the other cars in the world when it is sent, averaged over the car
+        steps of the run (sum n(n - 1) / sum n over closed steps with n cars in the world),
+        and every RSU; a beacon the cars in the world, averaged over the closed steps; an
+        autonomous path and a command one node. With every car in the world all run long
+        this is ``services.daemons.monitor.expected_receivers``."""
+        counts = [len(rows) for _k, rows in self.steps()]
+        car_steps = sum(counts)
+        fp = sum(n * (n - 1) for n in counts) / car_steps if car_steps else 0.0
+        beacon = car_steps / len(counts) if counts else 0.0
+        return {"fp": fp + n_rsus, "ap": 1.0, "cmd": 1.0, "beacon": beacon}
 
     @property
     def degraded(self) -> bool:
@@ -286,7 +370,7 @@ class TruthSteps:
 
     def metrics(self) -> RunMetrics:
         """The run's metrics from same-step truth only (see the module docstring)."""
-        return replay_metrics(self.scenario, self.dt, self.steps())
+        return replay_metrics(self.scenario, self.dt, self.steps(), self.start_times)
 
     @property
     def trace_rows(self) -> list[TraceRow]:
@@ -310,12 +394,23 @@ def trace_row(t: float, r: TruthSample) -> TraceRow:
 
 
 def replay_metrics(
-    scenario: Scenario, dt: float, steps: Iterable[tuple[int, Sequence[TruthSample]]]
+    scenario: Scenario,
+    dt: float,
+    steps: Iterable[tuple[int, Sequence[TruthSample]]],
+    start_times: Mapping[str, float] | None = None,
 ) -> RunMetrics:
     """Metrics of ``steps`` (step index, that step's reports) fed in order to a fresh
-    ``MetricsRecorder`` at run time ``step * dt`` [s]; a step without any car is skipped."""
+    ``MetricsRecorder`` at run time ``step * dt`` [s]; a step without any car is skipped.
+    With ``start_times`` (arrivals [run s]) a car's first report is its insertion
+    (``MetricsRecorder.inserted``: insertion and travel delay, as the harness)."""
     recorder = MetricsRecorder(scenario)
+    seen: set[str] = set()
     for k, rows in steps:
+        if start_times is not None:
+            for r in rows:
+                if r.vehicle not in seen:
+                    seen.add(r.vehicle)
+                    recorder.inserted(r.vehicle, float(start_times.get(r.vehicle, 0.0)), k * dt)
         if rows:
             recorder.record(
                 k * dt,
@@ -354,6 +449,8 @@ class MonitorRules:
     trace: bool = False
     start_repeat_s: float = START_REPEAT_S
     truth_wait_s: float = TRUTH_WAIT_S
+    start_times: Mapping[str, float] | None = None
+    """Each car's arrival [run s] (``TruthSteps``); None: every car from step 0."""
 
     @property
     def expected(self) -> frozenset[str]:
@@ -396,6 +493,7 @@ class MonitorCore:
             max_sim_s=rules.max_sim_s,
             trace=rules.trace,
             wait_s=rules.truth_wait_s,
+            start_times=rules.start_times,
         )
         self.phase = Phase.WAITING
         self.alive: set[str] = set()

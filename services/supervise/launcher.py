@@ -1,7 +1,11 @@
 """``crosspath up SCENARIO --mode M``: one run with every actor in its own OS process, over Zenoh.
 
 The launcher starts, on loopback, the monitor, the RSU(s) (``rsu`` mode only)
-and one process per car, each as ``python -m services.cli.main <command>``
+and the cars: one process per car, or with ``--cars-per-process N`` (by default for
+more than 4 cars, ``services.supervise.hosts``) hosts of N cars, each car still its own
+Zenoh node (``crosspath vehicle --ids``, ``services.daemons.host``); a scenario with
+flows is first expanded for the seed into ``<run dir>/scenario.toml``
+(``services.supervise.expand``). Each runs as ``python -m services.cli.main <command>``
 (so it works without the console script on PATH), waits for the monitor's
 result, prints the result table and a network table, and then terminates
 every child: SIGTERM to its process group, SIGKILL after
@@ -70,6 +74,7 @@ from typing import IO, Final, get_args
 
 from services.edge.args import (
     add_mode_and_policy,
+    int_at_least,
     non_negative_float,
     non_negative_int,
     output_dir,
@@ -83,6 +88,8 @@ from services.model.catalog import resolve_scenario
 from services.model.results import CrashEvent, RunResult
 from services.model.scenario import Scenario, load_scenario
 from services.model.types import Policy, RunMode, parse_mode, parse_policy
+from services.supervise.expand import expand_scenario
+from services.supervise.hosts import bind_listen_port, default_cars_per_process, group_cars
 
 __all__ = [
     "GRACE_S",
@@ -107,6 +114,12 @@ GRACE_S: Final = 5.0
 LEASE_MS: Final = 2000
 """Zenoh link lease of the daemons ``crosspath up`` starts [ms] (Zenoh's default is 10 s): a
 crashed peer's UDP link, and with it its liveliness token, is gone after at most this."""
+
+HOST_LEASE_MS: Final = 10000
+"""The link lease when cars share host processes (``--cars-per-process`` > 1) [ms]: Zenoh's
+default. A 40-car run holds thousands of links on two busy cores, and with
+:data:`LEASE_MS` an idle car's links were seen to expire (its token lost: the run
+failed); a crashed host is still seen within this."""
 
 SWEEP_GRACE_S: Final = 2.0
 """Seconds a swept leftover process has to exit after SIGTERM before it is killed."""
@@ -172,6 +185,7 @@ def actor_commands(
     python: str = sys.executable,
     zenoh_options: Mapping[str, object] | None = None,
     trace: bool = False,
+    keys_dir: Path | None = None,
 ) -> dict[str, list[str]]:
     """Command lines (argv) of every daemon of one run, in start order (see :func:`node_order`).
 
@@ -181,7 +195,9 @@ def actor_commands(
     :func:`daemon_env` and :data:`REPO_ROOT` as working directory (as
     :class:`Launcher` does); ``zenoh_options`` are raw Zenoh settings for every
     daemon (``crosspath up`` shortens the link lease, :data:`LEASE_MS`); ``trace`` asks
-    the monitor for the per-step trace in its result. Raises ``ValueError``
+    the monitor for the per-step trace in its result; ``keys_dir`` (an authority made by
+    :func:`make_run_authority`) gives every daemon its key, certificate, the root and the
+    revocation list (None: no credentials, unsigned V2X). Raises ``ValueError``
     (``ScenarioError`` included) when the scenario is unusable or an endpoint
     is missing.
     """
@@ -226,13 +242,42 @@ def actor_commands(
             argv += ["--log-level", log_level]
         if prefix is not None:
             argv += ["--prefix", prefix]
+        if keys_dir is not None:
+            argv += security_args(keys_dir)
         commands[node] = argv
     return commands
 
 
+def security_args(keys_dir: Path) -> list[str]:
+    """``--set security.*`` for a daemon of a run whose authority is ``keys_dir``
+    (``{node}`` in the key and certificate paths: the daemon's own id)."""
+    d = keys_dir.resolve()
+    out: list[str] = []
+    for name, value in (
+        ("key", d / "{node}.key"),
+        ("certificate", d / "{node}.cert"),
+        ("root", d / "root.pub"),
+        ("revocation", d / "revoked.txt"),
+    ):
+        out += ["--set", f"security.{name}={value}"]
+    return out
+
+
+def make_run_authority(directory: Path, scenario: Scenario, monitor: str = MONITOR) -> Path:
+    """A throw-away authority for one run in ``directory`` (issue 13): a root and a key
+    and certificate for every car, RSU and the monitor of ``scenario``, valid one day."""
+    from services.edge.trust import Authority, rsu_grants
+
+    auth = Authority.init(directory, exist_ok=True)
+    cars = [v.id for v in scenario.vehicles]
+    auth.provision(cars, rsu_grants(scenario), [monitor], validity_s=86400)
+    return directory
+
+
 def free_ports(count: int, host: str = "127.0.0.1") -> list[tuple[int, int]]:
     """``count`` (udp port, tcp port) pairs free on ``host`` right now (all held open
-    together while picking, so they are distinct)."""
+    together while picking, so they are distinct), below the ephemeral range where
+    there is room (:func:`~services.supervise.hosts.bind_listen_port`)."""
     held: list[socket.socket] = []
     pairs: list[tuple[int, int]] = []
     try:
@@ -241,7 +286,7 @@ def free_ports(count: int, host: str = "127.0.0.1") -> list[tuple[int, int]]:
             for kind in (socket.SOCK_DGRAM, socket.SOCK_STREAM):
                 sock = socket.socket(socket.AF_INET, kind)
                 held.append(sock)
-                sock.bind((host, 0))
+                bind_listen_port(sock, host)  # below the ephemeral range (hosts.py)
                 ports.append(int(sock.getsockname()[1]))
             pairs.append((ports[0], ports[1]))
     finally:
@@ -645,12 +690,19 @@ def prepare_up(
     start_delay_s: float = 1.0,
     log_level: str = "INFO",
     trace: bool = False,
+    cars_per_process: int | None = None,
+    insecure: bool = False,
 ) -> UpRun:
     """One ``crosspath up`` run over loopback, ready to :meth:`~UpRun.execute`.
 
     ``run_dir`` defaults to ``results/up/<time>-<id>``; ``timeout_s`` [wall s] to
-    ``max_sim_s / speed + 60``. Raises ``ValueError`` (``ScenarioError`` included)
-    for bad arguments, before anything starts.
+    ``max_sim_s / speed + 60``. A scenario with flows is expanded for ``seed`` into
+    ``<run dir>/scenario.toml`` (``services.supervise.expand``), which every daemon
+    loads. Unless ``insecure``, a throw-away authority in ``<run dir>/keys`` signs every
+    daemon's V2X (:func:`make_run_authority`). ``cars_per_process`` cars share one host
+    process (``services.supervise.hosts``; None:
+    :func:`~services.supervise.hosts.default_cars_per_process`). Raises
+    ``ValueError`` (``ScenarioError`` included) for bad arguments, before anything starts.
     """
     run_mode, run_policy = parse_mode(mode), parse_policy(policy)
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
@@ -663,14 +715,25 @@ def prepare_up(
         raise ValueError(f"max_sim_s must be a finite number > 0 [s], got {max_sim_s!r}")
     if not 0.0 <= start_delay_s <= 3600.0:
         raise ValueError(f"start delay must be within 0..3600 s, got {start_delay_s!r}")
+    if cars_per_process is not None and (
+        isinstance(cars_per_process, bool)
+        or not isinstance(cars_per_process, int)
+        or cars_per_process < 1
+    ):
+        raise ValueError(f"cars per process must be an int >= 1, got {cars_per_process!r}")
     scenario = load_scenario(Path(scenario_path))
-    scenario.require_no_flows("crosspath up")
     stamp = time.strftime("%Y%m%d-%H%M%S")
     run_id = f"up-{stamp}-{secrets.token_hex(3)}"
     out = run_dir if run_dir is not None else Path("results") / "up" / f"{stamp}-{run_id[-6:]}"
+    if scenario.spec.flows:  # every daemon loads the cars of this seed (services.supervise.expand)
+        scenario_path = expand_scenario(scenario, seed, out / "scenario.toml")
+        scenario = load_scenario(scenario_path)
+    cars = [v.id for v in scenario.vehicles]
+    per_process = cars_per_process or default_cars_per_process(len(cars))
     max_sim = max_sim_s if max_sim_s is not None else scenario.params.max_sim_s
     timeout = timeout_s if timeout_s is not None else max_sim / speed + 60.0
     nodes = node_order(scenario, run_mode)
+    keys_dir = None if insecure else make_run_authority(out / "keys", scenario)
     commands = actor_commands(
         Path(scenario_path),
         run_mode,
@@ -684,13 +747,18 @@ def prepare_up(
         start_delay_s=start_delay_s,
         log_level=log_level,
         zenoh_options={
-            "transport/link/tx/lease": LEASE_MS,
+            "transport/link/tx/lease": LEASE_MS if per_process == 1 else HOST_LEASE_MS,
             # every child's command line carries the run id: the final sweep finds it
             "metadata": {"crosspath_run": run_id},
         },
         trace=trace,
+        keys_dir=keys_dir,
     )
-    launcher = Launcher(commands, out, run_id=run_id)
+    if per_process > 1:
+        commands = group_cars(commands, cars, per_process)
+    # a host closes its cars' Zenoh sessions one by one (about 0.3 s each)
+    grace = GRACE_S + 0.5 * (per_process - 1)
+    launcher = Launcher(commands, out, run_id=run_id, grace_s=grace)
     return UpRun(run_id, out, launcher, timeout, max_sim, speed, trace)
 
 
@@ -737,11 +805,25 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "--start-delay", type=non_negative_float, default=1.0, help="wall s before run time 0"
     )
     parser.add_argument(
+        "--cars-per-process",
+        type=int_at_least(1),
+        default=None,
+        metavar="N",
+        help="cars per OS process, each still its own Zenoh node (default: 1 up to 4 cars, "
+        "else about 2 processes per CPU)",
+    )
+    parser.add_argument(
         "--log-level",
         type=str.upper,
         choices=list(get_args(LogLevel)),
         default="INFO",
         help="log level of the daemons",
+    )
+    parser.add_argument(
+        "--insecure",
+        action="store_true",
+        help="no keys: V2X unsigned and unverified (for comparison only; any peer can "
+        "command the cars)",
     )
 
 
@@ -773,9 +855,18 @@ def run(args: argparse.Namespace) -> int:
             start_delay_s=args.start_delay,
             log_level=args.log_level,
             trace=args.trace is not None,
+            cars_per_process=args.cars_per_process,
+            insecure=args.insecure,
         )
     except ValueError as exc:  # ScenarioError included
         return _fail(str(exc))
+    if args.insecure:
+        print(
+            "crosspath up: WARNING --insecure: V2X is neither signed nor verified, any peer "
+            "on the network can command the cars (comparison runs only)",
+            file=sys.stderr,
+            flush=True,
+        )
     launcher = up.launcher
     n_nodes = len(launcher.commands)
     print(f"crosspath up: run {up.run_id}, {n_nodes} processes, logs in {up.run_dir}", flush=True)

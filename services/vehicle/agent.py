@@ -7,7 +7,8 @@ daemon) passes ``now`` and inputs in and sends what comes out:
   mode command or coordinated path from an RSU, or an RSU beacon;
 - ``tick(now, ego, sensed)`` at the planning rate (10 Hz): plans, and returns
   the messages to send (the future path broadcast and, while coordinated, the
-  autonomous path to the RSU) and the next deadline;
+  autonomous path to the RSU; each every tick or, by the scenario's ``fp_rule`` /
+  ``ap_rule``, on change: ``services.vehicle.fp_rule``) and the next deadline;
 - ``command(body)`` at the physics rate (20 Hz): the acceleration command that
   tracks the last planned speed profile (the controller).
 """
@@ -36,6 +37,7 @@ from protocol.messages import (
 from services.model.kinematics import BodyState, Limits, TruthState
 from services.model.scenario import Scenario, VehicleParams
 from services.vehicle.coordination import VehicleEvent, next_mode
+from services.vehicle.fp_rule import ChangeRule, change_rule
 from services.vehicle.future_path import future_path_points
 from services.vehicle.planner import AutonomousPlanner, Coordination, Plan, Reason
 from services.vehicle.profile import FloatArray
@@ -102,6 +104,14 @@ class VehicleAgent:
     last_plan: Plan | None = field(init=False, default=None)
     seq: int = field(init=False, default=0)
     counters: dict[str, int] = field(init=False)
+    fp_rule: ChangeRule | None = field(init=False, default=None)
+    """When the future path is sent (``services.vehicle.fp_rule``); None: every tick."""
+    fp_hold_s: float = field(init=False, default=0.0)
+    """How long a received future path is kept [s] (``Scenario.fp_hold_s``)."""
+    ap_rule: ChangeRule | None = field(init=False, default=None)
+    """When the autonomous path is sent while coordinated; None: every tick."""
+    cp_timeout_s: float = field(init=False, default=0.0)
+    """Back to AUTO after this long without a coordinated path [s]."""
 
     def __post_init__(self) -> None:
         p = self.scenario.params
@@ -121,6 +131,15 @@ class VehicleAgent:
         self.future_paths = {}
         self.rsus = {}
         self.counters = {}
+        self.fp_rule = change_rule(self.spec.params)
+        self.fp_hold_s = self.scenario.fp_hold_s(self.spec.params.fp_stale_s)
+        self.ap_rule = change_rule(self.spec.params, autonomous=True)
+        # the RSU answers every autonomous path with a coordinated path: when the former is
+        # sent only on change, the latter may come that much later
+        vp = self.spec.params
+        self.cp_timeout_s = p.coordinated_timeout_s + (
+            0.0 if self.ap_rule is None else vp.ap_refresh_s
+        )
 
     @property
     def mode(self) -> Mode:
@@ -213,7 +232,7 @@ class VehicleAgent:
         """One planning step (10 Hz)."""
         p = self.scenario.params
         c = self.coordination
-        if c.mode is not Mode.AUTO and now - c.last_path_at > p.coordinated_timeout_s:
+        if c.mode is not Mode.AUTO and now - c.last_path_at > self.cp_timeout_s:
             log.info(
                 "%s: no coordinated path for %.2f s, back to AUTO",
                 self.spec.vehicle_id,
@@ -221,11 +240,7 @@ class VehicleAgent:
             )
             self._count("coordinated_timeout")
             self._apply(now, VehicleEvent.TIMEOUT, None)
-        fps = {
-            vid: fp
-            for vid, (fp, rx) in self.future_paths.items()
-            if now - rx <= self.spec.params.fp_stale_s
-        }
+        fps = {vid: fp for vid, (fp, rx) in self.future_paths.items() if now - rx <= self.fp_hold_s}
         for vid in [v for v in self.future_paths if v not in fps]:
             del self.future_paths[vid]
         autonomous = self.planner.plan(now, ego, sensed, fps)
@@ -253,13 +268,23 @@ class VehicleAgent:
         self.last_plan = plan
         out: list[Outgoing] = []
         if self.v2x:
-            out.append(Outgoing(Stream.FP, self._path_message(FuturePath, now, ego, plan)))
-            if c.mode is not Mode.AUTO and c.rsu is not None:
+            points = self._path_points(now, plan)
+            why = None if self.fp_rule is None else self.fp_rule.why(now, points, c.mode)
+            if self.fp_rule is None or why is not None:
                 out.append(
-                    Outgoing(
-                        Stream.AP, self._path_message(AutonomousPath, now, ego, autonomous), c.rsu
-                    )
+                    Outgoing(Stream.FP, self._path_message(FuturePath, now, ego, plan, points))
                 )
+            if why is not None:
+                self._count(f"fp_{why}")
+            elif self.fp_rule is not None:
+                self._count("fp_skipped")
+            if c.mode is not Mode.AUTO and c.rsu is not None:
+                ap_points = self._path_points(now, autonomous)
+                if self.ap_rule is None or self.ap_rule.why(now, ap_points, c.mode) is not None:
+                    message = self._path_message(AutonomousPath, now, ego, autonomous, ap_points)
+                    out.append(Outgoing(Stream.AP, message, c.rsu))
+                else:
+                    self._count("ap_skipped")
         return TickResult(plan, out, c.mode, now + 1.0 / p.planning_hz)
 
     def _path_message(
@@ -268,11 +293,9 @@ class VehicleAgent:
         now: float,
         ego: TruthState,
         plan: Plan,
+        points: FloatArray | None = None,
     ) -> FuturePath | AutonomousPath:
-        p = self.scenario.params
-        pts = future_path_points(
-            plan.profile, self.planner.route, now, p.t_free_s, p.future_path_points
-        )
+        pts = self._path_points(now, plan) if points is None else points
         self.seq = (self.seq + 1) & 0xFFFFFFFF
         return cls(
             header=Header(sender=self.spec.vehicle_id, seq=self.seq, time_us=round(now * 1e6)),
@@ -285,6 +308,13 @@ class VehicleAgent:
             mode=self.coordination.mode,
             points=pts,
             limits=self._declared_limits(),
+        )
+
+    def _path_points(self, now: float, plan: Plan) -> FloatArray:
+        """The plan's path points (x, y, t) over the horizon (paper eq. 1)."""
+        p = self.scenario.params
+        return future_path_points(
+            plan.profile, self.planner.route, now, p.t_free_s, p.future_path_points
         )
 
     def _declared_limits(self) -> VehicleLimits:

@@ -5,8 +5,11 @@ path samples it at ``n_points`` uniform times over the horizon ``T_free``
 (10 s), so a moving car (≥ 1.2 m/s) sends exactly ``n_points`` points. Points
 closer than 0.1 m to the previous one are dropped (the paper's minimum
 spacing), so a slow or stopping car sends fewer; a stop ends the path with
-one point at the stop position timed at the horizon ("a stop holds the last
-point until the horizon").
+two points at the exact stop position, the second timed at the horizon ("a
+stop holds the last point until the horizon"): the zero-length last segment is
+how a receiver (the RSU's velocity manager) sees that the path ends at rest. Had
+the last kept point stayed a few cm short of the stop, the path would read as a
+crawl that goes on past its end (issue 12, cause 1).
 """
 
 from __future__ import annotations
@@ -20,6 +23,9 @@ from services.vehicle.profile import FloatArray, SpeedProfile
 
 MIN_SPACING_M = 0.1
 """Minimum distance between consecutive future-path points [m] (paper §IV-B)."""
+
+_AT_REST_M = 1e-3
+"""The last two samples closer than this [m]: the car is at rest at the path's end."""
 
 
 @functools.lru_cache(maxsize=8)
@@ -57,9 +63,15 @@ def future_path_points(
             if s_list[i] - last >= MIN_SPACING_M:
                 last = s_list[i]
                 keep.append(i)
-        if keep[-1] != len(s_list) - 1:
-            keep.append(len(s_list) - 1)  # the hold point at the horizon
+        n = len(s_list)
+        if keep[-1] != n - 1:
+            keep.append(n - 1)  # the hold point at the horizon
         s_sel, t_sel = s_at[keep], t_samples[keep]
+        if len(keep) >= 3 and n >= 2 and s_list[-1] - s_list[-2] < _AT_REST_M:
+            # at rest at the end: the last kept point moves (< MIN_SPACING_M) to the stop
+            # itself, so the path ends with a zero-length segment (a held stop)
+            s_sel = s_sel.copy()
+            s_sel[-2] = s_sel[-1]
     xy = route.points_at(s_sel)
     out = np.empty((s_sel.shape[0], 3), dtype=np.float64)
     out[:, 0:2] = xy

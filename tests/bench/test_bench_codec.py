@@ -9,10 +9,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from protocol import Kind, decode, max_points
+from protocol import FuturePath, Kind, decode, encode, max_points
 from services.bench import codec as bench
 
-REQUIRED = {"sizes_bytes", "encode_decode_us", "speedup_vs_json", "size_ratio_vs_paper_json"}
+REQUIRED = {
+    "sizes_bytes",
+    "encode_decode_us",
+    "encode_decode_us_p50",
+    "speedup_vs_json",
+    "size_ratio_vs_paper_json",
+    "path_sizes_bytes",
+}
 
 
 def test_sample_path_is_a_decelerating_car() -> None:
@@ -40,7 +47,10 @@ def test_measure_sizes_and_keys() -> None:
     assert result["speedup_vs_json"] == pytest.approx(
         result["encode_decode_us"]["json"] / result["encode_decode_us"]["crosspath"]
     )
-    assert result["kinds"]["future_path"] == {"bytes": 297, "max_points": 230}
+    assert result["kinds"]["future_path"] == {
+        "bytes": 297,
+        "max_points": max_points(Kind.FUTURE_PATH),
+    }
     assert result["max_points"]["coordinated_path"] == max_points(Kind.COORDINATED_PATH)
 
 
@@ -78,7 +88,35 @@ def test_cli_writes_json(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> 
 def test_cli_refuses_bad_point_counts() -> None:
     parser = argparse.ArgumentParser()
     bench.configure(parser)
-    for bad in ("0", "231", "x"):  # refused while parsing: exit 2 before any measurement
+    for bad in (
+        "0",
+        str(max_points(Kind.FUTURE_PATH) + 1),
+        "x",
+    ):  # refused while parsing: exit 2 before any measurement
         with pytest.raises(SystemExit) as exc:
             parser.parse_args(["--points", bad])
         assert exc.value.code == 2
+
+
+def test_p50_and_targets_are_consistent() -> None:
+    result = bench.measure(points=120, repeat=2, number=2)
+    assert result["encode_decode_us_p50"] == result["encode_decode_us"]["crosspath"]
+    met = result["targets"]["met"]
+    assert met["speedup_vs_json"] == (result["speedup_vs_json"] >= bench.TARGET_SPEEDUP_VS_JSON)
+    assert met["path_bytes"] is True
+
+
+def test_realistic_paths_fit_450_bytes() -> None:
+    """Diagonal and turning paths need deltas in both x and y: bigger than along an axis."""
+    sizes = {name: len(encode(make(120))) for name, make in bench.PATHS.items()}
+    assert sizes["axis"] == 297
+    assert sizes["axis"] < sizes["diagonal"] <= bench.TARGET_PATH_BYTES
+    assert sizes["axis"] < sizes["turning"] <= bench.TARGET_PATH_BYTES
+    turn = bench.turning_future_path(120).points
+    heading_change = np.arctan2(*(turn[-1, 1::-1] - turn[-2, 1::-1]))
+    assert heading_change == pytest.approx(np.pi / 2, abs=0.01)  # ends northbound
+    for make in bench.PATHS.values():
+        m = make(120)
+        back = decode(encode(m))
+        assert isinstance(back, FuturePath)
+        assert np.allclose(back.points, m.points, rtol=0, atol=0.0051)

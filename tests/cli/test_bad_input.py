@@ -187,19 +187,19 @@ FLOWS = REPO / "scenarios" / "four-way-flows.toml"
 @pytest.mark.parametrize(
     "argv",
     [
-        ["up", str(FLOWS), "--mode", "rsu"],
         ["lab", "run", str(FLOWS), "--mode", "rsu"],
         ["rsu", "--scenario", str(FLOWS), "--id", "rsu1"],
     ],
-    ids=["up", "lab-run", "rsu-daemon"],
+    ids=["lab-run", "rsu-daemon"],
 )
 def test_daemon_harnesses_refuse_flows_in_one_line(place: Path, argv: list[str]) -> None:
-    """Flows run in the in-process harness only (issue 12): the daemons, `up` and the lab
-    refuse a flow scenario before starting anything, instead of running with no cars."""
+    """A daemon and the lab refuse a flow scenario before starting anything (issue 12:
+    `crosspath up` expands flows for its seed, tests/supervise/test_up_flows.py; a daemon
+    loads that plain file), instead of running with no cars."""
     before = _snapshot(place)
     proc = crosspath(place / "cwd", *argv)
     assert proc.returncode == 2, proc.stdout + proc.stderr
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1, proc.stderr
-    assert "flows" in lines[0] and "in-process harness" in lines[0], lines[0]
+    assert "flows" in lines[0] and "crosspath up" in lines[0], lines[0]
     assert _snapshot(place) == before

@@ -253,12 +253,13 @@ async def test_shell_counts_garbage_oversized_spoofed_and_stale() -> None:
     del qos
     from services.edge.transport import V2X_QOS
 
-    def send(key: str, payload: bytes) -> None:
+    async def send(key: str, payload: bytes) -> None:
         peer.publish(key, payload, V2X_QOS)
+        await asyncio.sleep(0)  # one at a time: a lane's queued datagram is replaced by a newer
 
     # outside a run: malformed ones are counted, valid ones dropped uncounted
-    send(keyexpr.future_path("A"), b"\x01\x02garbage")
-    send(keyexpr.future_path("A"), encode(future_path("A", 0.0)))
+    await send(keyexpr.future_path("A"), b"\x01\x02garbage")
+    await send(keyexpr.future_path("A"), encode(future_path("A", 0.0)))
     await asyncio.sleep(0.05)
     fp = shell.stats.stream("fp")
     assert (fp.malformed, fp.msgs_rx) == (1, 0) and rec.got == []
@@ -266,13 +267,15 @@ async def test_shell_counts_garbage_oversized_spoofed_and_stale() -> None:
     clock = shell.begin_run("run-1", time.time() - 10.0, 1.0)  # run time is about 10 s
     now = clock.now()
     good = encode(future_path("A", now - 0.005))
-    send(keyexpr.future_path("A"), good)
-    send(keyexpr.future_path("A"), good + b"\x00" * (2000 - len(good)))  # oversized
-    send(keyexpr.future_path("C"), good)  # sender A on C's key: spoofed
-    send(keyexpr.future_path("A"), encode(future_path("A", now - MAX_AGE_S - 1.0)))  # old
-    send(keyexpr.future_path("A"), encode(future_path("A", now + MAX_FUTURE_S + 1.0)))  # future
-    send(keyexpr.future_path("B"), good)  # our own key: skipped, not counted
-    send(keyexpr.future_path("A"), b"")
+    await send(keyexpr.future_path("A"), good)
+    await send(keyexpr.future_path("A"), good + b"\x00" * (2000 - len(good)))  # oversized
+    await send(keyexpr.future_path("C"), good)  # sender A on C's key: spoofed
+    await send(keyexpr.future_path("A"), encode(future_path("A", now - MAX_AGE_S - 1.0)))  # old
+    await send(
+        keyexpr.future_path("A"), encode(future_path("A", now + MAX_FUTURE_S + 1.0))
+    )  # future
+    await send(keyexpr.future_path("B"), good)  # our own key: skipped, not counted
+    await send(keyexpr.future_path("A"), b"")
     await asyncio.sleep(0.05)
     fp = shell.stats.stream("fp")
     assert fp.malformed == 3  # oversized, spoofed, empty
@@ -315,6 +318,7 @@ async def test_a_failing_handler_is_a_bug_logged_counted_and_raised_later(
         await asyncio.sleep(0.05)
         assert shell.plumbing_malformed == 1 and shell.fault is None  # counted, not a bug
         shell.publish_v2x(keyexpr.future_path("B"), future_path("B", 0.0))
+        await asyncio.sleep(0)  # else the newer one replaces it in the inbox (latest wins)
         shell.publish_v2x(keyexpr.future_path("B"), future_path("B", 0.0, seq=2))
         peer.publish(truth_key("A"), b"ours", RELIABLE_QOS)
         await asyncio.sleep(0.05)
@@ -505,7 +509,8 @@ def test_an_endpoint_that_cannot_be_opened_is_one_line_and_exit_78(
         proc = _rsu_process(tmp_path, f'listen = ["{endpoint}"]')
         _out, err = proc.communicate(timeout=60)
     assert proc.returncode == EXIT_CONFIG == 78, err
-    lines = [line for line in err.splitlines() if line.strip()]
+    # the one error line, besides the loud warning of a daemon started without credentials
+    lines = [line for line in err.splitlines() if line.strip() and "INSECURE" not in line]
     assert len(lines) == 1, err
     assert "ERROR" in lines[0] and f"cannot listen on {endpoint}: {reason}" in lines[0]
 
@@ -521,20 +526,24 @@ def test_a_peer_with_no_reachable_endpoint_says_so_and_keeps_trying(tmp_path: Pa
         selector.register(proc.stderr, selectors.EVENT_READ)
         deadline = time.monotonic() + UNREACHABLE_WARN_S + 20.0
         seen: list[str] = []
-        while not any("WARNING" in line for line in seen):
+
+        def reach(line: str) -> bool:  # not the start-up warning of a daemon without keys
+            return "WARNING" in line and "INSECURE" not in line
+
+        while not any(reach(line) for line in seen):
             assert time.monotonic() < deadline, seen
             if selector.select(timeout=0.5):
                 line = proc.stderr.readline()
                 assert line, f"stderr closed: {seen}"
                 seen.append(line.strip())
-        (warning,) = [line for line in seen if "WARNING" in line]
+        (warning,) = [line for line in seen if reach(line)]
         assert "no peer reachable after 5 s" in warning and "still trying" in warning
         assert all(endpoint in warning for endpoint in nowhere)
         assert proc.poll() is None  # it keeps running (and Zenoh keeps trying)
         proc.send_signal(signal.SIGTERM)
         _out, err = proc.communicate(timeout=20)
         assert proc.returncode == 0, err
-        assert "WARNING" not in err  # one warning only
+        assert not any(reach(line) for line in err.splitlines())  # one warning only
     finally:
         if proc.poll() is None:
             proc.kill()
@@ -600,8 +609,9 @@ async def test_daemons_over_memory_match_the_in_process_harness(mode: RunMode) -
     fp = network.stream("fp")
     assert fp is not None
     receivers = 1 if mode is RunMode.FP_ONLY else 2
-    # the memory bus loses nothing: what was not received was dropped as stale (a stalled loop)
-    assert fp.msgs_rx + fp.dropped_stale == fp.msgs * receivers
+    # the memory bus loses nothing: what was not received was dropped as stale (a stalled
+    # loop) or sent while the other car was not in the world (issue 12: insertion, removal)
+    assert 0.5 * fp.msgs * receivers <= fp.msgs_rx + fp.dropped_stale <= fp.msgs * receivers
     assert fp.delivery_ratio is not None and fp.delivery_ratio > 0.9 and fp.malformed == 0
     assert fp.msgs > 0 and network.total_kbps_per_vehicle > 0
     streams = {"fp", "ap", "cmd", "beacon"} if mode is RunMode.RSU else {"fp"}

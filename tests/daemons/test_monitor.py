@@ -133,16 +133,17 @@ async def test_monitor_runs_records_and_builds_the_result(tmp_path: Path) -> Non
     actors = FakeActors(bus, ("A", "B", "rsu1"))
     actors.open()
     out = tmp_path / "result.json"
-    mon = monitor(bus, max_sim_s=0.5, json_out=str(out), run_id="run-42", seed=3)
+    mon = monitor(bus, max_sim_s=0.5, json_out=str(out), run_id="run-42", seed=0)
     task = asyncio.ensure_future(serve(mon, install_signals=False))
     await wait_for(lambda: bool(actors.starts))
     start = actors.starts[0]
-    assert start.run_id == "run-42" and start.mode is RunMode.RSU and start.seed == 3
-    assert dict(start.start_times) == load_scenario(PAPER).draw_start_times(3)
+    assert start.run_id == "run-42" and start.mode is RunMode.RSU and start.seed == 0
+    assert dict(start.start_times) == load_scenario(PAPER).draw_start_times(0)
     assert start.vehicles == ("A", "B") and start.rsus == ("rsu1",) and start.speed == 5.0
     for step in range(15):
         actors.truth("run-42", "A", step, -200.0 + step * 0.25)
-        actors.truth("run-42", "B", step, -200.0 + step * 0.25)
+        if step >= 4:  # B arrives at 0.167 s: in the world from step 4 (issue 12)
+            actors.truth("run-42", "B", step, -200.0 + step * 0.25)
         actors.truth("old-run", "A", step, 0.0)  # another run's truth is ignored
     await wait_for(lambda: bool(actors.stops))
     assert actors.stops[0].run_id == "run-42" and actors.stops[0].sim_s == pytest.approx(0.5)
@@ -164,7 +165,8 @@ async def test_monitor_runs_records_and_builds_the_result(tmp_path: Path) -> Non
     fp = result.network.stream("fp")
     assert fp is not None
     assert (fp.msgs, fp.bytes, fp.msgs_rx) == (10, 1000, 20)
-    assert fp.delivery_ratio == pytest.approx(1.0)  # 10 sent x 2 receivers each
+    # 10 sent x (1 RSU + the other car while both are in the world: steps 4..10 of 0..10)
+    assert fp.delivery_ratio == pytest.approx(20 / (10 * (1 + 14 / 18)))
     assert fp.kbps_per_vehicle == pytest.approx(1000 * 8 / 1000 / 0.5 / 2)
     assert fp.latency_ms_p50 == pytest.approx(2.0, rel=0.05)
     assert result.network.total_kbps_per_vehicle == pytest.approx(fp.kbps_per_vehicle)
@@ -193,7 +195,7 @@ async def test_monitor_counts_a_missing_truth_step_and_fails_on_a_lost_actor() -
     await wait_for(lambda: bool(actors.starts))
     for step in range(30):
         actors.truth("run-7", "A", step, -200.0 + step * 0.25)
-        if step != 3:  # B's step 3 never comes
+        if step != 10:  # B's step 10 never comes (B is in the world from step 4, issue 12)
             actors.truth("run-7", "B", step, -200.0 + step * 0.25)
     await wait_for(lambda: mon.next_step >= 30, timeout=5.0)
     assert mon.truth_gaps == 1

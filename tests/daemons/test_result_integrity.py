@@ -35,7 +35,7 @@ from services.model.kinematics import TruthState
 from services.model.results import RunResult
 from services.model.scenario import Scenario, load_scenario
 from services.sim.metrics import MetricsRecorder, RunMetrics
-from services.sim.truth import replay_metrics
+from services.sim.truth import arrival_step, replay_metrics
 
 REPO = Path(__file__).resolve().parents[2]
 PAPER = REPO / "scenarios" / "paper-blind-intersection.toml"
@@ -101,7 +101,8 @@ def offline_from_step_log(sc: Scenario, path: Path, steps_recorded: int) -> RunM
 
     def steps() -> Iterator[tuple[int, Sequence[TruthReport]]]:
         for k in range(steps_recorded):
-            yield k, [table[k][v] for v in vehicles if v in table[k]]
+            rows = [table[k][v] for v in vehicles if v in table[k]]
+            yield k, [r for r in rows if r.presence != "waiting"]  # in the world (issue 12)
 
     return replay_metrics(sc, dt, steps())
 
@@ -168,8 +169,11 @@ def test_an_overloaded_run_says_so_and_its_safety_metrics_match_the_trace(
     for row in rebuilt.trace:
         rows[str(row[1])] += 1
     assert result.truth_gaps is not None
-    for vid in ("A", "B"):
-        assert rows[vid] + result.truth_gaps[vid] == result.truth.steps, vid
+    for vid in ("A", "B"):  # each car is in the world from its arrival to its removal
+        first = arrival_step(result.start_times[vid], 0.05)
+        left_s = (result.actors or {}).get(vid, {}).get("left_s")
+        last = result.truth.steps - 1 if left_s is None else round(left_s / 0.05)
+        assert rows[vid] + result.truth_gaps[vid] == last - first + 1, vid
 
 
 @pytest.mark.daemons

@@ -144,8 +144,9 @@ async def test_signal_stop_terminates_coordinated_cars_until_they_show_auto() ->
         def on_termination(key: str, payload: bytes) -> None:
             message = decode(payload)
             if isinstance(message, ModeCommand) and message.command is Command.TERMINATE:
-                # the car obeys: its next future path shows AUTO
-                fp = approaching_fp(h.now(), 5.0, Mode.AUTO)
+                # the car obeys: its next future path shows AUTO (from where it was: the
+                # RSU refuses a path that jumps, issue 13)
+                fp = approaching_fp(h.now(), mode=Mode.AUTO)
                 h.peer.publish(keyexpr.future_path("A"), encode(fp), V2X_QOS)
 
         h.peer.subscribe(keyexpr.rsu_command("rsu1", "A"), on_termination)

@@ -154,7 +154,8 @@ async def test_car_ignores_foreign_runs_sends_nothing_standalone_and_serves_the_
         h.truths.clear()
         h.control(start_message("next", RunMode.FP_ONLY, speed=10.0))
         await wait_for(lambda: len(h.truths) >= 5 and len(h.fps) >= 2)
-        assert {t.run_id for t in h.truths} == {"next"} and h.truths[0].step == 0
+        # B arrives at 0.5 s: no truth before its insertion (issue 12)
+        assert {t.run_id for t in h.truths} == {"next"} and h.truths[0].step == 10
         h.control(StopRun("next"))
         await wait_for(lambda: h.daemon.runs_done == 2)
 

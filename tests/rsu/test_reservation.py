@@ -10,13 +10,19 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from services.rsu.reservation import (
+    FOLLOW_GAP_M,
+    FOLLOW_WINDOW_S,
+    LANE_SLACK_M,
     MAX_BODY_LENGTH_M,
     MAX_BODY_WIDTH_M,
+    SAME_WAY_RAD,
     STANDARD_SHAPE,
     Conflict,
     ReservationTable,
     body_growth,
+    follow_distance,
     oversize,
+    path_headings,
 )
 
 D = 2.8
@@ -191,18 +197,31 @@ def test_indexed_query_equals_brute_force(
     assert (first is None) == (not fast)
     assert first is None or first in fast
     # and the brute force itself is right: recompute pair by pair, in plain Python
+    # (the crossing rule, and the follow rule for same-way points in one lane)
     expected: dict[str, bool] = {}
+    hq = path_headings(query).tolist()
     for i, (pts, shape) in enumerate(others):
         d = D + body_growth(*query_shape) + body_growth(*shape)
+        f = follow_distance(query_shape[0], shape[0], FOLLOW_GAP_M)
+        lane = 0.5 * (min(query_shape[1], 3.0) + min(shape[1], 3.0)) + LANE_SLACK_M
+        ho = path_headings(pts).tolist()
         hit = False
-        for qx, qy, qt in query.tolist():
+        for (qx, qy, qt), (qux, quy) in zip(query.tolist(), hq, strict=True):
             if not now <= qt <= now + horizon:
                 continue
-            for ox, oy, ot in pts.tolist():
+            for (ox, oy, ot), (oux, ouy) in zip(pts.tolist(), ho, strict=True):
                 if not now <= ot <= now + horizon:
                     continue
                 dx, dy = qx - ox, qy - oy
                 if dx * dx + dy * dy <= d * d and abs(qt - ot) < H:
+                    hit = True
+                q_still, o_still = math.isnan(qux), math.isnan(oux)
+                if q_still and o_still:
+                    continue
+                same = q_still != o_still or qux * oux + quy * ouy >= math.cos(SAME_WAY_RAD)
+                ux, uy = (oux, ouy) if q_still else (qux, quy)
+                close = dx * dx + dy * dy <= f * f and abs(qt - ot) < FOLLOW_WINDOW_S
+                if same and close and abs(ux * dy - uy * dx) <= lane:
                     hit = True
         expected[f"v{i}"] = hit
     assert {c.vehicle for c in slow} == {v for v, hit in expected.items() if hit}

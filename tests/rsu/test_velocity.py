@@ -244,10 +244,14 @@ def test_crossing_paper_stops_and_slot_delays_just_enough(v_b: float, gap: float
     own_entry = paths.zone_entry_time(b.points, ZONE)
     assert slot.entry_time > own_entry
     assert slot.entry_time - own_entry < 2.0
-    # and the earliest such slot: one search step earlier still conflicts
-    earlier = _meet(vm, b, slot.entry_time - config().slot_step_s)
+    # and the earliest such slot with clearance (issue 12, cause 6): one search step
+    # earlier comes within the release margins of a conflict
+    cfg = config()
+    margins = (cfg.release_margin_m, cfg.release_margin_s)
+    assert table.naive_conflicts("B", slot.points, 0.0, 10.0, (), *margins) == []
+    earlier = _meet(vm, b, slot.entry_time - cfg.slot_step_s)
     assert earlier is not None
-    assert table.naive_conflicts("B", earlier.points, 0.0, 10.0) != []
+    assert table.naive_conflicts("B", earlier.points, 0.0, 10.0, (), *margins) != []
 
 
 def _meet(vm: VelocityManager, path: AutonomousPath, target: float) -> velocity.SpeedPlan | None:

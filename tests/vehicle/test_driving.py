@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
 from services.api import simulate
@@ -172,8 +172,23 @@ def test_knowing_the_others_plans_never_makes_cars_slower(
     alone = simulate(sc, mode="standalone", max_sim_s=MAX_SIM_S)
     fp = simulate(sc, mode="fp-only", max_sim_s=MAX_SIM_S)
     assert fp.collisions == 0
+    # a stand-alone run that collided is no baseline for speed (its wrecked cars never
+    # pass); that collision is test_standalone_crossing_between_two_opposite_cars's
+    assume(alone.collisions == 0)
     assert fp.mean_passing_time_s is not None and alone.mean_passing_time_s is not None
     assert fp.mean_passing_time_s <= alone.mean_passing_time_s + FP_TOLERANCE_S
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="issue 12, open: a northbound stand-alone car between an eastbound and a"
+    " westbound car 1.5 s apart (each seen late at a blind corner) collides; found by"
+    " the property above",
+)
+def test_standalone_crossing_between_two_opposite_cars() -> None:
+    sc = scenario([("A", "east", 0.0), ("B", "north", 1.0), ("C", "west", 2.5)])
+    alone = simulate(sc, mode="standalone", max_sim_s=MAX_SIM_S)
+    assert alone.collisions == 0
 
 
 @pytest.mark.parametrize("mode", ["standalone", "fp-only", "rsu"])

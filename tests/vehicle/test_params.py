@@ -21,6 +21,11 @@ NEW_VALUES = {
     "control_lookahead_s": 0.5,
     "control_time_constant_s": 0.6,
     "fp_stale_s": 0.9,
+    "fp_rule": "change",
+    "fp_change_m": 1.0,
+    "fp_refresh_s": 2.0,
+    "ap_rule": "change",
+    "ap_refresh_s": 0.5,
 }
 
 
@@ -31,8 +36,8 @@ def test_every_knob_is_listed() -> None:
 
 
 @pytest.mark.parametrize(("name", "value"), sorted(NEW_VALUES.items()))
-def test_each_knob_reaches_the_agent_and_its_planner(name: str, value: float) -> None:
-    sc = parse_scenario(PAPER.read_text() + f"\n[vehicle_params]\n{name} = {value}\n")
+def test_each_knob_reaches_the_agent_and_its_planner(name: str, value: float | str) -> None:
+    sc = parse_scenario(PAPER.read_text() + f"\n[vehicle_params]\n{name} = {value!r}\n")
     for v in sc.vehicles:
         agent = vehicle_agent(sc, v.id, v2x=True)
         assert getattr(agent.spec.params, name) == value

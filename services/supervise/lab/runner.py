@@ -108,6 +108,7 @@ from services.supervise.launcher import (
     Endpoints,
     actor_commands,
     daemon_env,
+    make_run_authority,
     node_order,
     tail_log,
 )
@@ -535,6 +536,8 @@ class LabSession:
             start_delay_s=start_delay_s,
             log_level=log_level,
             zenoh_options=options,
+            # issue 13: signed V2X with a throw-away authority beside the logs
+            keys_dir=make_run_authority(self.log_dir / "keys", self.scenario, MONITOR),
         )
 
     def start(self, node: str, argv: Sequence[str]) -> _Daemon:

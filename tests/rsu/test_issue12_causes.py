@@ -1,0 +1,301 @@
+"""Issue 12: the six causes of conflicting coordinated paths, each with the RSU core alone.
+
+Crafted paths at a 4-way box (centre at the origin, 7 m square): A eastbound on
+y = -1.75, B northbound on x = +1.75 (they cross at (1.75, -1.75)), followers in
+A's lane behind it.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TypeVar
+
+import numpy as np
+
+from protocol.messages import (
+    AutonomousPath,
+    CoordinatedPath,
+    FuturePath,
+    Header,
+    Mode,
+    ModeCommand,
+    VehiclePath,
+)
+from services.model.geometry import Polyline
+from services.model.types import Policy
+from services.rsu import core as rsu_core
+from services.rsu import paths
+from services.rsu.config import RsuConfig
+from services.rsu.core import Outgoing, RsuCore
+from services.rsu.reservation import ReservationTable, follow_distance
+from services.rsu.velocity import VelocityManager
+from services.vehicle.future_path import future_path_points
+from services.vehicle.profile import SpeedProfile, forward_pass, grid, pass_times, stop_cap
+
+ZONE = np.array([[-3.5, -3.5], [3.5, -3.5], [3.5, 3.5], [-3.5, 3.5]])
+VMAX = 50 / 3.6
+EAST, NORTH = 0.0, math.pi / 2
+CROSS = (1.75, -1.75)
+
+
+def config(policy: Policy = Policy.PAPER, **kw: object) -> RsuConfig:
+    return RsuConfig("rsu-1", "x0", (0.0, 0.0), ZONE, policy=policy, **kw)  # type: ignore[arg-type]
+
+
+def straight(start: tuple[float, float], heading: float, v: float, t0: float) -> np.ndarray:
+    t = t0 + np.linspace(0.0, 10.0, 120)
+    s = v * (t - t0)
+    return np.column_stack([start[0] + s * math.cos(heading), start[1] + s * math.sin(heading), t])
+
+
+def held(x: float, y: float, t0: float) -> np.ndarray:
+    """A car standing at (x, y) for the horizon (two points, as a future path has)."""
+    return np.array([[x, y, t0], [x, y, t0 + 10.0]])
+
+
+P = TypeVar("P", bound=VehiclePath)
+
+
+def message(
+    cls: type[P],
+    vehicle: str,
+    pts: np.ndarray,
+    v: float,
+    heading: float,
+    mode: Mode = Mode.AUTO,
+    seq: int = 1,
+) -> P:
+    t0 = float(pts[0, 2])
+    x, y = float(pts[0, 0]), float(pts[0, 1])
+    return cls(Header(vehicle, seq, round(t0 * 1e6)), x, y, v, heading, 4.5, 1.8, mode, pts)
+
+
+def sent(out: list[Outgoing], vehicle: str) -> list[tuple[str, Mode]]:
+    return [
+        (type(o.message).__name__, o.message.mode)
+        for o in out
+        if o.vehicle == vehicle and isinstance(o.message, ModeCommand | CoordinatedPath)
+    ]
+
+
+def no_conflict_within(core: RsuCore, now: float, horizon: float) -> list[tuple[str, str]]:
+    """Pairs of table entries in conflict within ``horizon`` of ``now`` (the invariant)."""
+    bad = []
+    for vehicle in core.table:
+        entry = core.table.get(vehicle)
+        assert entry is not None
+        shape = (entry.length, entry.width)
+        for c in core.table.naive_conflicts(vehicle, entry.points, now, horizon, shape=shape):
+            bad.append((vehicle, c.vehicle))
+    return bad
+
+
+# -- cause 1: a stop at the end of the car's own path -------------------------------------
+
+
+def test_cause1_future_path_of_a_stopping_car_ends_with_a_held_stop() -> None:
+    """The builder used to leave its last point a few cm past the previous one: the RSU
+    then read a crawl, not a stop, and planned C_FAST at V_max off the end of the path."""
+    route = Polyline([(-100.0, -1.75), (100.0, -1.75)])
+    s = grid(0.0, 60.0, 0.5)
+    v = forward_pass(np.minimum(VMAX, stop_cap(s, 37.3, 2.0)), 8.0, 0.5, 1.5)
+    profile = SpeedProfile(s, v, pass_times(s, v, 0.0))
+    pts = future_path_points(profile, route, 0.0, 10.0, 120)
+    assert np.hypot(*(pts[-1, :2] - pts[-2, :2])) == 0.0  # zero-length last segment
+    assert pts[-1, 2] == 10.0 and pts[-1, 0] <= -100.0 + 37.5 + 1e-6  # the grid's stop
+    # the RSU's C_FAST plan on it stops there too (target 0 at the end, held)
+    path = message(AutonomousPath, "A", pts, 8.0, EAST, Mode.C_FAST)
+    plan = VelocityManager(config()).plan("A", path, Mode.C_FAST, 0.0, ReservationTable())
+    assert plan.speeds[-1] == 0.0
+    assert plan.points[-1, 2] >= 10.0 - 1e-9
+    assert float(plan.points[:, 0].max()) <= float(pts[-1, 0]) + 1e-6
+
+
+def test_cause1_rsu_sees_a_stop_a_few_cm_past_the_last_point() -> None:
+    """Robust on the RSU's side too: an old-style path (last point 4 cm on, 6 s later)."""
+    pts = straight((-40.0, -1.75), EAST, 6.0, 0.0)[:50]
+    last = pts[-1].copy()
+    last[0] += 0.04
+    last[2] = 10.0
+    pts = np.vstack([pts, last])
+    path = message(AutonomousPath, "A", pts, 6.0, EAST, Mode.C_FAST)
+    plan = VelocityManager(config()).plan("A", path, Mode.C_FAST, 0.0, ReservationTable())
+    assert plan.speeds[-1] == 0.0
+    assert float(plan.points[:, 0].max()) <= float(last[0]) + 1e-6
+    assert plan.points[-1, 2] >= 10.0 - 1e-9  # held to the horizon
+
+
+# -- cause 2: the C_FAST path itself is checked ----------------------------------------------
+
+
+def test_cause2_promotion_is_judged_on_the_plan_not_on_the_cars_own_path() -> None:
+    """B's own path (3 m/s) crosses A's 5 s after A: free. Its V_max plan would cross
+    within a headway of A: B must not get C_FAST on it."""
+    core = RsuCore(config(), listen_s=0.3)
+    a = straight((CROSS[0] - 5.0 * VMAX, CROSS[1]), EAST, VMAX, 0.0)
+    assert core.on_message(0.0, message(FuturePath, "A", a, VMAX, EAST)) == []  # listened
+    b = straight((CROSS[0], CROSS[1] - 30.0), NORTH, 3.0, 0.4)
+    assert core.table.naive_conflicts("B", b, 0.4, 10.0) == []  # its own path is clear
+    fast = VelocityManager(config()).plan(
+        "B", message(AutonomousPath, "B", b, 3.0, NORTH), Mode.C_FAST, 0.4, core.table
+    )
+    assert core.table.naive_conflicts("B", fast.points, 0.4, 10.0) != []  # the plan is not
+    out = core.on_message(0.4, message(FuturePath, "B", b, 3.0, NORTH))
+    assert core.mode_of("B") != Mode.C_FAST
+    assert ("ModeCommand", Mode.C_FAST) not in sent(out, "B")
+    assert no_conflict_within(core, 0.4, config().t_collision_s) == []
+
+
+def test_cause2_every_c_fast_path_sent_is_clear_of_the_table() -> None:
+    core = RsuCore(config(), listen_s=0.0)
+    out = core.on_message(
+        0.0, message(FuturePath, "A", straight((-60.0, -1.75), EAST, VMAX, 0.0), VMAX, EAST)
+    )
+    cps = [o.message for o in out if isinstance(o.message, CoordinatedPath)]
+    assert cps and cps[0].mode == Mode.C_FAST
+    b = straight((1.75, -40.0), NORTH, 8.0, 0.1)
+    out = core.on_message(0.1, message(FuturePath, "B", b, 8.0, NORTH))
+    for o in out:
+        m = o.message
+        if isinstance(m, CoordinatedPath) and m.mode == Mode.C_FAST:
+            assert core.table.naive_conflicts(m.vehicle, m.points, 0.1, 10.0) == []
+    assert no_conflict_within(core, 0.1, config().t_collision_s) == []
+
+
+# -- cause 3: yielding between C_FAST and C_SLOW --------------------------------------------
+
+
+def test_cause3_a_c_fast_car_yields_to_a_c_slow_cars_path() -> None:
+    """A C_SLOW entry is all that car can give: a C_FAST car whose plan meets it yields."""
+    core = RsuCore(config(), listen_s=0.0)
+    cfg = config()
+    # B: commanded C_SLOW, its entry a path it cannot leave (a slot through the crossing)
+    b_path = straight((CROSS[0], CROSS[1] - 40.0), NORTH, 8.0, 0.0)
+    core.on_message(
+        0.0, message(FuturePath, "A", straight((-90.0, -1.75), EAST, VMAX, 0.0), VMAX, EAST)
+    )
+    assert core.mode_of("A") == Mode.C_FAST
+    car_b = rsu_core._Car(
+        "B", mode=Mode.C_SLOW, x=CROSS[0], y=CROSS[1] - 40.0, heading=NORTH, speed=8.0
+    )
+    core._cars["B"] = car_b
+    core.table.update("B", b_path, 0.0)
+    # A's next autonomous path: its C_FAST plan now reaches the crossing as B does
+    a_when = float(paths.zone_entry_time(b_path, ZONE))
+    a = straight((CROSS[0] - (a_when - 0.2) * VMAX, CROSS[1]), EAST, VMAX, 0.2)
+    core.on_message(0.2, message(AutonomousPath, "A", a, VMAX, EAST, Mode.C_FAST), "rsu-1")
+    assert core.mode_of("A") == Mode.C_SLOW
+    assert core.mode_of("B") == Mode.C_SLOW
+    assert no_conflict_within(core, 0.2, cfg.t_collision_s) == []
+
+
+# -- cause 4: no flip-flop ---------------------------------------------------------------------
+
+
+def test_cause4_a_follower_does_not_flip_its_mode_every_step() -> None:
+    """A stands at the stop line; B follows in A's lane, its own path running through. Over
+    4 s of autonomous paths every 0.1 s B's mode changes a bounded number of times, and
+    never twice within the dwell after its first changes."""
+    core = RsuCore(config(), listen_s=0.0)
+    a_x = -3.5 - 5.0 - 2.25
+    changes: list[tuple[float, Mode]] = []
+    b_x, b_v = a_x - 35.0, 6.0
+    for k in range(40):
+        now = round(0.1 * k, 1)
+        core.on_message(
+            now,
+            message(FuturePath, "A", held(a_x, -1.75, now), 0.0, EAST, core.mode_of("A"), k + 1),
+        )
+        b = straight((b_x, -1.75), EAST, b_v, now)
+        before = core.mode_of("B")
+        if before == Mode.AUTO:
+            core.on_message(now, message(FuturePath, "B", b, b_v, EAST, Mode.AUTO, k + 1))
+        else:
+            core.on_message(now, message(FuturePath, "B", b, b_v, EAST, before, k + 1))
+            core.on_message(now, message(AutonomousPath, "B", b, b_v, EAST, before, k + 1), "rsu-1")
+        if core.mode_of("B") != before:
+            changes.append((now, core.mode_of("B")))
+        entry = core.table.get("B")
+        if entry is not None and core.mode_of("B") != Mode.AUTO:
+            # B follows its coordinated path exactly
+            s_now = np.interp(now + 0.1, entry.points[:, 2], paths.arc_length(entry.points))
+            b_x = float(entry.points[0, 0]) + float(s_now)
+            b_v = max(
+                0.0,
+                float(
+                    np.interp(
+                        now + 0.1, entry.points[:, 2], paths.segment_speeds(entry.points, b_v)
+                    )
+                ),
+            )
+        else:
+            b_x += 0.1 * b_v
+        assert b_x <= a_x - follow_distance(4.5, 4.5, 1.0) + 1e-6, "B drove into A"
+    assert changes, "B is coordinated at all"
+    assert len(changes) <= rsu_core.MAX_MODE_CHANGES, changes
+    late = changes[rsu_core.FREE_MODE_CHANGES :]
+    gaps = [
+        t2 - t1
+        for (t1, _), (t2, _) in zip(changes[rsu_core.FREE_MODE_CHANGES - 1 :], late, strict=False)
+    ]
+    assert all(g >= rsu_core.MODE_DWELL_S - 1e-9 for g in gaps), changes
+
+
+# -- cause 5: the paper's stop stops behind the car ahead -------------------------------------
+
+
+def test_cause5_paper_stop_stops_behind_the_car_ahead_braking_as_hard_as_needed() -> None:
+    a_x = -10.75
+    table = ReservationTable(2.8, 1.0, 0.5)
+    table.update("A", held(a_x, -1.75, 0.0), 0.0)
+    b = straight((a_x - 30.0, -1.75), EAST, VMAX, 0.0)  # its own path runs through A
+    plan = VelocityManager(config()).plan(
+        "B", message(AutonomousPath, "B", b, VMAX, EAST, Mode.C_SLOW), Mode.C_SLOW, 0.0, table
+    )
+    stop_x = float(plan.points[:, 0].max())
+    assert stop_x <= a_x - follow_distance(4.5, 4.5, table.follow_gap_m)
+    assert stop_x >= a_x - 30.0 + 5.0  # it does not stop short either: it brakes to there
+    assert table.naive_conflicts("B", plan.points, 0.0, 10.0) == []
+    assert np.all(plan.speeds == 0.0)
+
+
+def test_cause5_a_stop_within_its_own_paths_stop() -> None:
+    """The autonomous path stops 15 m on (its planner sees a car ahead): so does the plan."""
+    pts = straight((-60.0, -1.75), EAST, VMAX, 0.0)
+    pts = pts[pts[:, 0] <= -45.0]
+    pts = np.vstack([pts, [[pts[-1, 0], -1.75, 10.0]]])
+    plan = VelocityManager(config()).plan(
+        "B",
+        message(AutonomousPath, "B", pts, VMAX, EAST, Mode.C_SLOW),
+        Mode.C_SLOW,
+        0.0,
+        ReservationTable(),
+    )
+    assert float(plan.points[:, 0].max()) <= float(pts[-1, 0]) + 1e-6
+
+
+# -- cause 6: slot entry with clearance -------------------------------------------------------
+
+
+def test_cause6_slot_entry_keeps_the_release_margins_and_survives_the_next_replan() -> None:
+    cfg = config(Policy.SLOT)
+    table = ReservationTable(2.8, 1.0, 0.5)
+    table.update("A", straight((CROSS[0] - 4.0 * VMAX, CROSS[1]), EAST, VMAX, 0.0), 0.0)
+    b = straight((CROSS[0], CROSS[1] - 4.3 * VMAX), NORTH, VMAX, 0.0)
+    vm = VelocityManager(cfg)
+    plan = vm.plan(
+        "B", message(AutonomousPath, "B", b, VMAX, NORTH, Mode.C_SLOW), Mode.C_SLOW, 0.0, table
+    )
+    assert plan.kind.startswith("slot") and plan.kind != "slot_fallback"
+    margins = (cfg.release_margin_m, cfg.release_margin_s)
+    assert table.naive_conflicts("B", plan.points, 0.0, 10.0, (), *margins) == []
+    # 0.1 s on, B exactly where its plan said, A too: the re-plan is still clear
+    t = 0.1
+    bx, by = (float(np.interp(t, plan.points[:, 2], plan.points[:, i])) for i in (0, 1))
+    v = float(paths.segment_speeds(plan.points, VMAX)[1])
+    again = straight((bx, by), NORTH, v, t)
+    table.update("A", straight((CROSS[0] - 3.9 * VMAX, CROSS[1]), EAST, VMAX, t), t)
+    replan = vm.plan(
+        "B", message(AutonomousPath, "B", again, v, NORTH, Mode.C_SLOW), Mode.C_SLOW, t, table
+    )
+    assert table.naive_conflicts("B", replan.points, t, cfg.t_collision_s) == []

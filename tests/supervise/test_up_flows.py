@@ -1,0 +1,54 @@
+"""`crosspath up` runs flow scenarios (issue 12): the scenario expanded for the seed, cars
+inserted and removed by their daemons, several cars per OS process, each its own node.
+
+The counts are asserted, never wall-clock limits: a loaded machine makes a run late
+(``degraded``), not wrong. The 40-car real-time case (``scenarios/four-way-flows-40.toml``,
+about 5 min on 2 cores) is a measurement (README, "Many cars"), not a test: ``slow`` tests
+run on CI, and it would take both of CI's cores for minutes."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from services.model.scenario import load_scenario
+from services.supervise.hosts import host_name
+from services.supervise.launcher import prepare_up
+
+REPO = Path(__file__).resolve().parents[2]
+SMALL = REPO / "tests" / "data" / "four-way-flows-small.toml"
+
+
+def _check_run(scenario: Path, cars: int, speed: float, run_dir: Path, per: int | None) -> None:
+    up = prepare_up(scenario, "rsu", "paper", 0, speed, run_dir=run_dir, cars_per_process=per)
+    expanded = run_dir / "scenario.toml"
+    assert expanded.is_file() and not load_scenario(expanded).spec.flows
+    ids = [v.id for v in load_scenario(expanded).vehicles]
+    assert len(ids) == cars
+    hosts = [n for n in up.launcher.commands if n.startswith("host.")]
+    if per is not None:
+        assert hosts == [host_name(k) for k in range(-(-cars // per))]
+    outcome = up.execute()
+    result = outcome.result
+    assert result is not None, outcome.failure()
+    assert result.error is None and outcome.ok, outcome.failure()
+    assert result.end_reason == "every car has left at its goal"
+    summary = result.summary
+    assert summary is not None
+    assert summary.vehicles_inserted == cars and summary.vehicles_finished == cars
+    assert sorted(result.vehicles) == sorted(ids)
+    assert all(v.insertion_delay_s is not None for v in result.vehicles.values())
+    network = result.network
+    assert network is not None
+    fp = network.stream("fp")
+    assert fp is not None and fp.msgs > 0 and fp.msgs_rx > 0
+    actors = result.actors or {}
+    assert set(ids) <= set(actors)  # every car reported its own stats as its own node
+    assert all(actors[v].get("left_s") is not None for v in ids)
+
+
+@pytest.mark.daemons
+@pytest.mark.slow  # about 40 s on a loaded 2-core machine
+def test_up_runs_a_flow_scenario_with_several_cars_per_process(tmp_path: Path) -> None:
+    _check_run(SMALL, 12, 2.0, tmp_path / "run", per=4)
