@@ -4,7 +4,7 @@ Pure functions, no I/O and no clock reads (callers pass ``now_unix``). The
 cryptography is the ``cryptography`` package's Ed25519; nothing here is
 hand-written crypto, only byte layouts.
 
-A signed datagram is an ordinary version-2 datagram with ``flags.AUTH`` and a
+A signed datagram is an ordinary datagram (format version 3) with ``flags.AUTH`` and a
 scheme-1 trailer whose data is::
 
     u8  form        0: the signer's key id follows, 1: its whole certificate follows

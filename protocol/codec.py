@@ -16,10 +16,15 @@ it never allocates more than a few kilobytes (a datagram holds at most
 Speed (``crosspath bench codec``; issue 14's target is 25x stdlib JSON, 8 µs for
 encode + decode of a 120-point path): a datagram costs a few numpy calls each way
 (about 0.3-1 µs each whatever the size of a path: that overhead, not arithmetic, is
-the cost), so the Python around them is kept thin. Encoding a vehicle path works on
-the flat row-major array and checks delta widths on the bytes of one int32 cast
+the cost), so the Python around them is kept thin. Format 3 quantises every path
+time as a whole millisecond of the run, so neither side shifts the t column by the
+header time (two numpy calls fewer). An unsigned vehicle path from a known sender
+is encoded and decoded with one ``struct`` call for header, sender, state and first
+point (``_encode_vehicle_path_fast``, ``_decode_vehicle_path_fast``; anything unusual
+goes the general way, which explains refusals). Encoding works on the flat
+row-major array and checks delta widths on the bytes of one int16 cast
 (``_points``); decoding accumulates once over the (N, 3) rows and scales them in one
-1-D division. Ids and
+same-shape division. Ids and
 delta-column layouts, once validated, are cached (at most ``_CACHE_MAX`` entries
 each, cleared when full, so a peer cannot grow them), and ``decode`` builds the
 message without running the dataclass ``__init__`` (``_constructor``): every field
@@ -253,9 +258,9 @@ _SIGN: Final = bytes(0xFF if b & 0x80 else 0 for b in range(256))
 """``bytes.translate`` table: each byte to the byte that sign-extends it (0x00 or 0xFF)."""
 
 _ZEROS: Final = bytes(max(_fit(_VP_FIXED, 6), _fit(_CP_FIXED, 8)))
-_I32: Final = np.dtype("<i4")
-_FAST_SQ_LIMIT: Final = 65535.0**2
-"""Sum of squared deltas [wire units²] under which every delta fits an int32 exactly."""
+_I2: Final = np.dtype("<i2")
+_FAST_SQ_LIMIT: Final = 32767.0**2
+"""Sum of squared deltas [wire units²] under which every delta fits an int16 exactly."""
 
 _TILES: Final[dict[int, FloatArray]] = {}
 """Points -> the wire scale repeated per point (x, y, t of every row), read-only."""
@@ -269,68 +274,80 @@ def _tiled_scale(n: int) -> FloatArray:
     return tile
 
 
+_ROWS_SCALE: Final[dict[int, FloatArray]] = {}
+"""Points -> the wire scale as an (N, 3) array, read-only."""
+
+
+def _scale_rows(n: int) -> FloatArray:
+    """``_SCALE_ROW`` in each of ``n`` rows: one same-shape divide scales a whole path."""
+    rows = _ROWS_SCALE.get(n)
+    if rows is None:
+        rows = _remember(_ROWS_SCALE, n, _read_only(np.tile(_SCALE_ROW, (n, 1))))
+    return rows
+
+
 def _points(
     kind: Kind, points: FloatArray, speeds: FloatArray | None, time_us: int
 ) -> tuple[int, int, bytes]:
     """Point count, widths byte and the packed points (first row + delta columns).
 
     The fast path of vehicle paths (``_points_checked`` does the rest and explains
-    every refusal): 1-D numpy on the row-major path, then one int32 copy of the
-    deltas whose bytes are split into columns and width-checked with bytes slicing
-    and ``bytes.translate`` (a delta fits one byte iff its three high bytes all
-    sign-extend its low byte), instead of a min/max reduction and a cast per column.
+    every refusal): five numpy calls on the row-major path (scale, round, deltas, one
+    dot product that bounds every delta, one int16 cast), then bytes slicing: the
+    low and high bytes of the int16 deltas, split into columns, are the wire's
+    1-byte columns, and a delta fits one byte iff its high byte sign-extends its low
+    byte (``bytes.translate``), instead of a min/max reduction and a cast per column.
     Same bytes as ``_points_checked`` (``tests/protocol/test_fast_points.py``).
     """
     n = points.shape[0]
     if speeds is not None or not 2 <= n <= _MAX_POINTS[kind] or points.shape != (n, 3):
         return _points_checked(kind, points, speeds, time_us)
     q = np.multiply(points.reshape(-1), _tiled_scale(n))  # x, y [cm], t [ms] per row
-    q[_T_COLUMN::3] -= time_us / 1000.0
     np.rint(q, q)
-    first: list[float] = q[:3].tolist()
+    x0, y0, t0 = q[:3].tolist()
+    t0 -= time_us // 1000  # exact: whole numbers below 2**53
     deltas = np.subtract(q[3:], q[:-3])
     if not (
-        _COL_LO[0] <= first[0] <= _COL_HI[0]
-        and _COL_LO[1] <= first[1] <= _COL_HI[1]
-        and _COL_LO[2] <= first[2] <= _COL_HI[2]
+        -_MAX_COORD_CM <= x0 <= _MAX_COORD_CM
+        and -_MAX_COORD_CM <= y0 <= _MAX_COORD_CM
+        and _I32_MIN <= t0 <= _I32_MAX
         and np.dot(deltas, deltas) <= _FAST_SQ_LIMIT  # NaN fails too
     ):
         return _points_checked(kind, points, speeds, time_us)
-    raw = deltas.astype(_I32).tobytes()  # rows of x, y, t; little-endian int32
-    low, b1, b2, b3 = raw[0::4], raw[1::4], raw[2::4], raw[3::4]
+    small = deltas.astype(_I2)  # rows of x, y, t; exact, every |delta| <= 32767
+    raw = small.tobytes()
+    low, high = raw[0::2], raw[1::2]
     zero = _ZEROS[: n - 1]
-    parts = [_FIRST3.pack(int(first[0]), int(first[1]), int(first[2]))]
+    parts = [_FIRST3.pack(int(x0), int(y0), int(t0))]
     widths = 0
-    sign = low.translate(_SIGN)
-    if b1 == sign and b2 == sign and b3 == sign and sign[_T_COLUMN::3] == zero:
-        # every delta fits one byte (x, y: int8; t: 0..127)
-        for c in range(3):
-            column = low[c::3]
-            if column != zero:
-                parts.append(column)
-                widths |= 1 << (2 * c)
+    if high == low.translate(_SIGN):  # every delta fits one signed byte
+        cx, cy, ct = low[0::3], low[1::3], low[2::3]
+        if cx != zero:
+            parts.append(cx)
+            widths = 0x01
+        if cy != zero:
+            parts.append(cy)
+            widths |= 0x04
+        if ct != zero:
+            if ct.translate(_SIGN) != zero:
+                return _points_checked(kind, points, speeds, time_us)  # time goes back
+            parts.append(ct)
+            widths |= 0x10
         return n, widths, b"".join(parts)
     for c in range(3):
-        c0, c1, c2, c3 = low[c::3], b1[c::3], b2[c::3], b3[c::3]
-        if c == _T_COLUMN:  # unsigned
-            if c2 != zero or c3 != zero:
-                return _points_checked(kind, points, speeds, time_us)
+        c0, c1 = low[c::3], high[c::3]
+        if c == _T_COLUMN:  # unsigned: 0..32767 here
+            if c1.translate(_SIGN) != zero:
+                return _points_checked(kind, points, speeds, time_us)  # time goes back
             code = 2 if c1 != zero else 1 if c0 != zero else 0
+        elif c1 == c0.translate(_SIGN):
+            code = 1 if c0 != zero else 0
         else:
-            sign = c0.translate(_SIGN)
-            if c1 == sign and c2 == sign and c3 == sign:
-                code = 1 if c0 != zero else 0
-            elif c2 == c3 == c1.translate(_SIGN):
-                code = 2
-            else:
-                return _points_checked(kind, points, speeds, time_us)
+            code = 2
         if code == 1:
             parts.append(c0)
         elif code == 2:
-            pairs = bytearray(2 * n - 2)
-            pairs[0::2] = c0
-            pairs[1::2] = c1
-            parts.append(bytes(pairs))
+            parts.append(small[c::3].tobytes())
         widths |= code << (2 * c)
     return n, widths, b"".join(parts)
 
@@ -350,12 +367,12 @@ def _points_checked(
     ncols = 3 if speeds is None else 4
     # column-major wire units: x [cm], y [cm], t [ms after the header time], speed [cm/s]
     cols = np.empty((ncols, n))
-    np.multiply(points.T, _SCALE3, cols[:3])
-    cols[_T_COLUMN] -= time_us / 1000.0
+    np.multiply(points.T, _SCALE3, cols[:3])  # t: whole ms of the run's time base
     if speeds is not None:
         np.multiply(speeds, 100.0, cols[3])
     np.rint(cols, cols)
     first: list[float] = cols[:, 0].tolist()
+    first[_T_COLUMN] -= time_us // 1000  # the first time goes after the header's ms
     for c in range(ncols):
         # NaN fails both comparisons, infinities one
         if not _COL_LO[c] <= first[c] <= _COL_HI[c]:
@@ -544,8 +561,76 @@ _ENCODERS: Final[dict[type, Callable[[Any], list[bytes]]]] = {
 }
 
 
+_VP_PREFIX: Final[dict[int, struct.Struct]] = {
+    size: struct.Struct(f"<BBBBIqB{size}siiHhHHHBBBBHB") for size in range(1, MAX_ID_LEN + 1)
+}
+"""Sender id length -> header, sender id and vehicle path state in one ``struct``."""
+
+_VP_KINDS: Final[dict[type, Kind]] = {
+    FuturePath: Kind.FUTURE_PATH,
+    AutonomousPath: Kind.AUTONOMOUS_PATH,
+}
+
+
+def _encode_vehicle_path_fast(kind: Kind, m: VehiclePath) -> bytes | None:
+    """The datagram of an unsigned vehicle path with a known sender id, in one ``struct``
+    call besides its points; None for anything unusual, which ``_encode_vehicle_path``
+    then encodes or refuses with its own explanation. Same bytes as that function."""
+    h = m.header
+    sender = _ID_CACHE.get(h.sender) if type(h.sender) is str else None
+    seq, time_us = h.seq, h.time_us
+    mode = _MODES.get(m.mode)
+    if (
+        sender is None
+        or mode is None
+        or h.flags != 0
+        or h.auth
+        or type(seq) is not int
+        or type(time_us) is not int
+        or not 0 <= seq <= 0xFFFF_FFFF
+        or not -MAX_TIME_US <= time_us <= MAX_TIME_US
+    ):
+        return None
+    limits = m.limits
+    wire = _NO_LIMITS if limits is None else _LIMITS_WIRE.get(limits)
+    if wire is None:
+        return None
+    try:
+        x, y = round(float(m.x) * 100.0), round(float(m.y) * 100.0)
+        speed, heading = round(float(m.speed) * 100.0), round(float(m.heading) * 1e4)
+        length, width = round(float(m.length) * 100.0), round(float(m.width) * 100.0)
+    except (ValueError, OverflowError, TypeError):
+        return None
+    if not (
+        -_MAX_COORD_CM <= x <= _MAX_COORD_CM
+        and -_MAX_COORD_CM <= y <= _MAX_COORD_CM
+        and 0 <= speed <= _MAX_SPEED_CM_S
+        and -_MAX_HEADING <= heading <= _MAX_HEADING
+        and 1 <= length <= _MAX_LENGTH_CM
+        and 1 <= width <= _MAX_WIDTH_CM
+    ):
+        return None
+    n, widths, packed = _points(kind, m.points, None, time_us)
+    lv, la, ld, ll = wire
+    head = _VP_PREFIX[len(sender)].pack(
+        MAGIC, FORMAT_VERSION, kind, 0, seq, time_us, len(sender), sender,
+        x, y, speed, heading, length, width, lv, la, ld, ll, mode, n, widths,
+    )  # fmt: skip
+    return head + packed  # at most 49 + 25 + 12 + 215 * 6 bytes: always fits
+
+
 def encode(message: Message) -> bytes:
     """The datagram of ``message``; ``EncodeError`` if it is invalid or exceeds ``MAX_DATAGRAM``."""
+    kind = _VP_KINDS.get(type(message))
+    if kind is not None:
+        try:
+            fast = _encode_vehicle_path_fast(kind, message)  # type: ignore[arg-type]
+        except EncodeError:
+            raise
+        except (TypeError, ValueError, AttributeError, OverflowError, struct.error) as exc:
+            raise EncodeError(f"cannot encode {type(message).__name__}: {exc}") from exc
+        if fast is not None:
+            return fast
     encoder = _ENCODERS.get(type(message))
     if encoder is None:
         for cls, candidate in _ENCODERS.items():
@@ -597,6 +682,10 @@ _PLANS: Final[dict[tuple[int, int, int], _Plan]] = {}
 """(points, widths byte, columns) -> the delta columns on the wire: (column, dtype, bytes)."""
 
 
+_PLAN_BYTES: Final[dict[_Plan, int]] = {}
+"""Delta plan -> the bytes its columns take (filled as plans are made)."""
+
+
 def _delta_plan(n: int, widths: int, ncols: int) -> _Plan:
     """Which columns carry deltas, as what, and how many bytes each; validates ``widths``."""
     plan = _PLANS.get((n, widths, ncols))
@@ -614,7 +703,11 @@ def _delta_plan(n: int, widths: int, ncols: int) -> _Plan:
         if code:
             dtypes = _DTYPES_UNSIGNED if c == _T_COLUMN else _DTYPES_SIGNED
             columns.append((c, dtypes[code], (n - 1) * code))
-    return _remember(_PLANS, (n, widths, ncols), tuple(columns))
+    plan = tuple(columns)
+    if len(_PLAN_BYTES) >= _CACHE_MAX:
+        _PLAN_BYTES.clear()
+    _PLAN_BYTES[plan] = sum(size for _, _, size in plan)
+    return _remember(_PLANS, (n, widths, ncols), plan)
 
 
 def _read_only(arr: FloatArray) -> FloatArray:
@@ -641,13 +734,15 @@ def _read_points(
     for c in range(ncols):
         if not _COL_LO[c] <= first[c] <= _COL_HI[c]:
             raise DecodeError(f"first point: {_COLUMN_NAMES[c]} out of range")
-    # row-major float64 holding integers (sums stay exact below 2**53): x [cm], y [cm],
-    # t [ms on the run's time base], speed [cm/s]
-    rows = np.zeros((n, ncols))  # a column of width code 0 keeps its zero deltas
-    start = list(first)
-    start[_T_COLUMN] += time_us / 1000.0
-    rows[0] = start
+    # row-major float64 holding whole numbers (sums stay exact below 2**53): x [cm],
+    # y [cm], t [ms of the run's time base], speed [cm/s]
     count = n - 1
+    full = len(plan) == ncols or not count  # else a column of width 0 keeps zero deltas
+    rows = np.empty((n, ncols)) if full else np.zeros((n, ncols))
+    if ncols == 3:
+        rows[0] = (first[0], first[1], first[2] + time_us // 1000)
+    else:
+        rows[0] = (first[0], first[1], first[2] + time_us // 1000, first[3])
     for c, dtype, size in plan:
         end = off + size
         if end > len(buf):
@@ -848,9 +943,86 @@ _BODY_READERS: Final[dict[Kind, Callable[[bytes, int, Kind, int], _Body]]] = {
 }
 
 
+_VP_FAST_HEADS: Final = frozenset(
+    bytes((MAGIC, FORMAT_VERSION, kind, flags))
+    for kind in (Kind.FUTURE_PATH, Kind.AUTONOMOUS_PATH)
+    for flags in (0, int(Flags.AUTH))
+)
+_VP_CLASSES: Final = {Kind.FUTURE_PATH: FuturePath, Kind.AUTONOMOUS_PATH: AutonomousPath}
+_MAX_VP_POINTS: Final = _MAX_POINTS[Kind.FUTURE_PATH]
+_COLUMN_KEYS: Final = tuple((slice(1, None), c) for c in range(4))
+"""``rows[key]``: the delta rows of column c."""
+
+
+def _decode_vehicle_path_fast(buf: bytes) -> Message | None:
+    """A vehicle path of at least 2 points from a known sender with known limits and
+    delta layout, with one ``struct`` call for everything before its points; None for
+    anything else, which ``_decode`` then decodes or refuses with its explanation.
+    Exactly the message ``_decode`` gives (``tests/protocol/test_fast_points.py``)."""
+    size = len(buf)
+    layout = _VP_PREFIX.get(buf[16]) if 17 <= size <= MAX_DATAGRAM else None
+    if layout is None or size < layout.size + _FIRST3.size or buf[:4] not in _VP_FAST_HEADS:
+        return None
+    (_, _, kind, flags, seq, time_us, _, raw_sender, x, y, speed, heading, length, width,
+     lv, la, ld, ll, mode, n, widths) = layout.unpack_from(buf, 0)  # fmt: skip
+    sender = _ID_STRS.get(raw_sender)
+    plan = _PLANS.get((n, widths, 3))
+    limits = None if lv == la == ld == ll == 0 else _LIMITS.get((lv, la, ld, ll))
+    x0, y0, t0 = _FIRST3.unpack_from(buf, layout.size)
+    if (
+        sender is None
+        or plan is None
+        or (limits is None and lv | la | ld | ll)
+        or not (
+            2 <= n <= _MAX_VP_POINTS
+            and mode <= 2
+            and -MAX_TIME_US <= time_us <= MAX_TIME_US
+            and -_MAX_COORD_CM <= x <= _MAX_COORD_CM
+            and -_MAX_COORD_CM <= y <= _MAX_COORD_CM
+            and speed <= _MAX_SPEED_CM_S
+            and -_MAX_HEADING <= heading <= _MAX_HEADING
+            and 1 <= length <= _MAX_LENGTH_CM
+            and 1 <= width <= _MAX_WIDTH_CM
+            and -_MAX_COORD_CM <= x0 <= _MAX_COORD_CM
+            and -_MAX_COORD_CM <= y0 <= _MAX_COORD_CM
+        )
+    ):
+        return None
+    off = layout.size + _FIRST3.size
+    need = _PLAN_BYTES.get(plan)
+    if need is None or off + need > size:
+        return None
+    rows = np.empty((n, 3)) if len(plan) == 3 else np.zeros((n, 3))
+    rows[0] = (x0, y0, t0 + time_us // 1000)
+    count = n - 1
+    for c, dtype, nbytes in plan:
+        rows[_COLUMN_KEYS[c]] = np.frombuffer(buf, dtype, count, off)
+        off += nbytes
+    auth = _read_trailer(buf, off, flags)
+    np.add.accumulate(rows, 0, None, rows)
+    np.divide(rows, _scale_rows(n), rows)
+    rows.setflags(write=False)
+    return _NEW[_VP_CLASSES[kind]](
+        _new_header(sender, seq, time_us, flags, auth),
+        x / 100,
+        y / 100,
+        speed / 100,
+        heading / 1e4,
+        length / 100,
+        width / 100,
+        _MODES[mode],
+        rows,
+        limits,
+    )
+
+
 def decode(data: bytes | bytearray | memoryview) -> Message:
     """The message in one datagram; ``DecodeError`` (and nothing else) for anything malformed."""
     try:
+        if type(data) is bytes:
+            fast = _decode_vehicle_path_fast(data)
+            if fast is not None:
+                return fast
         return _decode(data)
     except DecodeError:
         raise

@@ -22,8 +22,9 @@ import numpy.typing as npt
 
 FloatArray = npt.NDArray[np.float64]
 
-FORMAT_VERSION = 2
-"""Wire format version carried by every datagram (2: vehicle paths carry ``VehicleLimits``)."""
+FORMAT_VERSION = 3
+"""Wire format version carried by every datagram (2: vehicle paths carry ``VehicleLimits``;
+3: path times are whole milliseconds of the run's time base, ``SPEC.md`` 3)."""
 
 MAX_DATAGRAM = 1460
 """Largest datagram crosspath ever produces, in bytes (one UDP payload on Ethernet)."""

@@ -43,6 +43,7 @@ from services.edge.args import (
     add_mode_and_policy,
     float_at_least,
     fraction,
+    int_at_least,
     non_negative_int,
     output_dir,
     output_file,
@@ -67,7 +68,6 @@ from services.supervise.lab.runner import (
     LabInterrupted,
     LabSession,
     TimedAction,
-    lab_endpoints,
     parse_timed,
     run_lab,
     shell_command,
@@ -145,9 +145,25 @@ _LOG_LEVELS: Final = list(get_args(LogLevel))
 
 def _add_run_choice(parser: argparse.ArgumentParser) -> None:
     add_mode_and_policy(parser)
-    parser.add_argument("--seed", type=non_negative_int, default=0, help="seed of the start times")
+    parser.add_argument(
+        "--seed", type=non_negative_int, default=0, help="seed of the start times and flows"
+    )
     parser.add_argument(
         "--speed", type=run_speed, default=1.0, help="run seconds per wall second, up to 1000"
+    )
+    parser.add_argument(
+        "--no-tls",
+        dest="tls",
+        action="store_false",
+        help="plain UDP and TCP Zenoh links instead of mutual TLS (for comparison; V2X and "
+        "plumbing stay signed)",
+    )
+    parser.add_argument(
+        "--cars-per-process",
+        type=int_at_least(1),
+        default=None,
+        metavar="N",
+        help="cars per daemon process, sharing its namespace (default as crosspath up)",
     )
 
 
@@ -185,7 +201,15 @@ def run_up(args: argparse.Namespace) -> int:
     try:
         if args.loss > 0.0:
             Loss(args.loss, args.burst)  # an impossible loss model is refused before building
-        session = LabSession(args.scenario, RunMode(args.mode), args.name, log_dir)
+        session = LabSession(
+            args.scenario,
+            RunMode(args.mode),
+            args.name,
+            log_dir,
+            tls=args.tls,
+            seed=args.seed,
+            cars_per_process=args.cars_per_process,
+        )
     except (ScenarioError, ValueError) as exc:
         return _fail("up", str(exc))
     try:
@@ -197,10 +221,15 @@ def run_up(args: argparse.Namespace) -> int:
             json_out=log_dir / "result.json",
             log_level=args.log_level,
         )
-        actors = [n for n in session.order if n != MONITOR]
+        actors = [n for n in commands if n != MONITOR]
         for node in actors:
             session.start(node, commands[node])
-        missing = wait_udp_links(session.lab, actors)
+        missing = wait_udp_links(
+            session.lab,
+            [n for n in session.ns_order if n != MONITOR],
+            tls=args.tls,
+            endpoints=session.endpoints(),
+        )
         if missing:
             raise LabError(
                 "UDP links not established: "
@@ -221,7 +250,7 @@ def run_up(args: argparse.Namespace) -> int:
         f"daemons {', '.join(actors)} running, logs in {log_dir}"
     )
     print(f"{'node':<10}{'role':<9}{'namespace':<28}{'air (V2X, UDP)':<24}wire (plumbing, TCP)")
-    endpoints = lab_endpoints(session.lab, session.order)
+    endpoints = session.endpoints()
     for entry in plan.nodes:
         e = endpoints[entry.name]
         print(f"{entry.name:<10}{entry.role!s:<9}{entry.netns:<28}{e.udp:<24}{e.tcp}")
@@ -315,6 +344,8 @@ def run_run(args: argparse.Namespace) -> int:
                 timeout_s=args.timeout,
                 trace=args.trace,
                 log_level=args.log_level,
+                tls=args.tls,
+                cars_per_process=args.cars_per_process,
                 say=say,
             )
     except LabInterrupted as exc:
@@ -343,7 +374,8 @@ def format_lab(lab: Mapping[str, Any]) -> str:
     lines.append(
         f"lab {lab.get('name', '?')}: loss {faults.get('loss', 0):g} "
         f"(burst {faults.get('burst') or '-'}), rate {faults.get('rate_mbit') or '-'} Mbit/s, "
-        f"from run time {_num(faults.get('applied_at_s'), '.2f')} s"
+        f"from run time {_num(faults.get('applied_at_s'), '.2f')} s; "
+        + ("mutual TLS" if lab.get("tls") else "no TLS")
     )
     air = lab.get("air") or {}
     if air:

@@ -26,6 +26,10 @@ from services.edge.provenance import package_version
 # (command words) -> (module, help)
 COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
     ("sim",): ("services.cli.sim", "one in-process run of a scenario"),
+    ("sumo",): (
+        "services.cli.sumo",
+        "co-simulation: SUMO's network, demand and physics, crosspath's connected cars and RSUs",
+    ),
     ("up",): ("services.supervise.launcher", "one run with one OS process per actor over Zenoh"),
     ("vehicle",): ("services.daemons.vehicle", "run one car daemon"),
     ("rsu",): ("services.daemons.rsu", "run one roadside unit daemon"),

@@ -12,7 +12,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from services.edge.args import non_negative_float, output_file, positive_float
+from services.edge.args import non_negative_float, output_file, positive_float, positive_int
 
 __all__ = ["configure", "run"]
 
@@ -50,6 +50,12 @@ def configure(parser: argparse.ArgumentParser) -> None:
         help="stop line this far before each junction's zone [m]",
     )
     parser.add_argument("--no-rsu", action="store_true", help="no RSU at the junctions")
+    parser.add_argument(
+        "--max-routes",
+        type=positive_int,
+        default=200,
+        help="at most this many entry-to-exit routes, round robin over the entries",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -68,6 +74,7 @@ def run(args: argparse.Namespace) -> int:
             flow_end_s=args.flow_end,
             stop_line_offset_m=args.stop_line_offset,
             rsus=not args.no_rsu,
+            max_routes=args.max_routes,
         )
         write_scenario(sc, out)
         back = load_scenario(out)

@@ -104,6 +104,13 @@ class CarHost:
         for k, car in enumerate(self.cars):
             car.world = self.world
             car.world_owner = k == 0
+        # One cache of checked certificates per host (same root): a car inserted late
+        # verifies the others' digest-signed datagrams at once, instead of refusing them
+        # as ``unknown_key`` until each sender's next certificate (about 1 s).
+        stores = [car.shell.trust for car in self.cars if car.shell.trust is not None]
+        for store in stores[1:]:
+            if store.root == stores[0].root:
+                store._certs = stores[0]._certs
 
     async def startup(self) -> None:
         """Open the cars' sessions one after another, in order: car ``k`` connects to cars

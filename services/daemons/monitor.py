@@ -10,7 +10,13 @@ and sends what it says. One run, step by step:
 1. **Wait for the actors.** It watches the liveliness tokens
    ``{prefix}/sim/alive/{node}`` until every expected actor is present: every
    car of the scenario, and in ``rsu`` mode every RSU (``wait_actors_s`` at
-   most, else the run fails naming the missing ones).
+   most, else the run fails naming the missing ones). With credentials (issue 13)
+   a token is not enough, since tokens carry no signature: an actor is present
+   only once its token is up *and* a stats report signed by its own key arrived
+   since the token appeared (every actor publishes one as soon as it is up, then
+   every ``stats_period_s``: its "hello"); losing the token forgets it. So a bare
+   token (a forged ``rsu1``) never makes the run start. Without credentials
+   (``--insecure``) nothing can be authenticated and the token alone counts.
 2. **Start.** It publishes a :class:`~services.edge.plumbing.StartRun` on
    ``{prefix}/sim/control`` (reliable): run id, scenario name, mode, policy,
    seed, each car's start time (``Scenario.draw_start_times(seed)``, as the
@@ -352,6 +358,11 @@ class MonitorService(DaemonBase[MonitorConfig]):
         self.veto: str | None = None
         """Why a run the core saw through still failed (:meth:`unheard_rsus`)."""
         self._start_payload = b""
+        self.tokens: set[str] = set()
+        """Actors whose liveliness token is up."""
+        self.heard: set[str] = set()
+        """Actors a signed stats report came from since their token appeared (issue 13:
+        with credentials, presence needs both; :meth:`_present`)."""
         self._wake = asyncio.Event()
         self._halt_reason = "stopped by a signal"
 
@@ -549,6 +560,10 @@ class MonitorService(DaemonBase[MonitorConfig]):
         report = decode_stats(payload)
         if key != keys.stats(report.node, prefix=self.prefix):
             raise PlumbingError(f"stats of {report.node!r} on {key}")
+        if report.node in self.expected and report.node not in self.heard:
+            # signed by the node's own key when we have credentials (PlumbingAuth.open)
+            self.heard.add(report.node)
+            self._present(report.node)
         start = self.start
         if start is None or report.run_id != start.run_id or report.node not in self.expected:
             return
@@ -562,7 +577,25 @@ class MonitorService(DaemonBase[MonitorConfig]):
         self._wake.set()
 
     def _on_alive(self, node: str, alive: bool) -> None:
-        self.core.on_alive(self.time_fn(), node, alive)
+        if alive:
+            self.tokens.add(node)
+            self._present(node)
+            return
+        self.tokens.discard(node)
+        self.heard.discard(node)  # a token that comes back must say hello again
+        self.core.on_alive(self.time_fn(), node, False)
+        self._wake.set()
+
+    def _present(self, node: str) -> None:
+        """Tell the core ``node`` is present once it is (module docstring, step 1): its
+        token is up and, with credentials, a signed stats report of it came since."""
+        if node not in self.tokens:
+            return
+        signed = self.shell.plumbing_auth is not None
+        if signed and node in self.expected and node not in self.heard:
+            log.debug("%s: liveliness token up, waiting for its signed stats", node)
+            return
+        self.core.on_alive(self.time_fn(), node, True)
         self._wake.set()
 
     # ------------------------------------------------------------------ result

@@ -247,7 +247,8 @@ class VehicleDaemon(ActorDaemon[VehicleDaemonConfig]):
             async for step, now in self.ticks(start, clock, halt, p.physics_hz, first):
                 truth = body.truth(now)
                 if self.inserted_s is None:
-                    inside = [advance(r.state, now) for r in self.others.values()]
+                    states = world.states_at(now, advance)
+                    inside = [st for v, st in states.items() if v != me]
                     clear = all(v in world.entered for v in ahead) and entry_clear(
                         truth, inside, p.headway_s, body.limits.decel_comfort
                     )
@@ -259,7 +260,8 @@ class VehicleDaemon(ActorDaemon[VehicleDaemonConfig]):
                     if v2x:
                         self._radio_on()
                 if step % plan_every == 0:
-                    others = [advance(r.state, now) for r in self.others.values()]
+                    states = world.states_at(now, advance)
+                    others = [st for v, st in states.items() if v != me]
                     sensed = perceive(truth, others, sc.building_polygons, p.sensor_range_m)
                     result = agent.tick(now, truth, sensed)
                     reason = result.plan.reason.value

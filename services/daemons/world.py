@@ -20,10 +20,11 @@ could both enter on the same spot.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
 from services.edge.plumbing import TruthReport
+from services.model.kinematics import TruthState
 from services.model.scenario import Scenario
 
 __all__ = ["TruthBoard", "entry_predecessors"]
@@ -42,6 +43,19 @@ class TruthBoard:
     """Cars seen in the world (an ``in`` or ``left`` report) this run."""
     gone: set[str] = field(default_factory=set)
     """Cars that left the world at their goal this run (not sensed any more)."""
+    _at: float | None = None
+    _states: dict[str, TruthState] = field(default_factory=dict)
+
+    def states_at(
+        self, now: float, advance: Callable[[TruthState, float], TruthState]
+    ) -> dict[str, TruthState]:
+        """Every car's latest truth advanced to run time ``now`` by ``advance``, by car id:
+        computed once per instant for all the cars of a host (they sense at the same run
+        times), again when a report arrived since. Do not modify the result."""
+        if self._at != now:
+            self._states = {vid: advance(r.state, now) for vid, r in self.latest.items()}
+            self._at = now
+        return self._states
 
     def reset(self, run_id: str) -> None:
         """Forget an earlier run (a no-op when the board already follows ``run_id``: the
@@ -51,6 +65,7 @@ class TruthBoard:
             self.latest.clear()
             self.entered.clear()
             self.gone.clear()
+            self._at = None
 
     def take(self, report: TruthReport) -> None:
         """One car's report of the current run (validated by the shell)."""
@@ -60,6 +75,7 @@ class TruthBoard:
         if report.presence == "waiting" or vid in self.gone:
             return
         self.entered.add(vid)
+        self._at = None
         if report.presence == "left":
             self.gone.add(vid)
             self.latest.pop(vid, None)

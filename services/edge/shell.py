@@ -91,6 +91,7 @@ import contextlib
 import logging
 import os
 import time
+from collections import OrderedDict
 from collections.abc import AsyncIterator, Callable, Collection, Coroutine, Mapping
 from pathlib import Path
 from typing import Any, Final, Generic, TypeVar
@@ -144,10 +145,12 @@ from services.edge.trust import Refused, Signer, TrustStore, load_security
 from services.model.scenario import Scenario, ScenarioError, load_scenario
 
 __all__ = [
+    "DECODE_MEMO",
     "DRAIN_S",
     "END_MARGIN_S",
     "MAX_AGE_S",
     "MAX_FUTURE_S",
+    "PROFILE_ENV",
     "UNREACHABLE_WARN_S",
     "ActorDaemon",
     "DaemonBase",
@@ -156,6 +159,7 @@ __all__ = [
     "RateLimitedLog",
     "V2xHandler",
     "add_daemon_arguments",
+    "decode_shared",
     "load_daemon_scenario",
     "open_transport",
     "run_daemon",
@@ -200,8 +204,31 @@ PLUMBING_BYTES: Final = 16 * 1024 * 1024
 
 _V2X_LABELS: Final = frozenset(str(s) for s in (Stream.FP, Stream.AP, Stream.CMD, Stream.BEACON))
 
+PROFILE_ENV: Final = "CROSSPATH_PROFILE"
+"""Environment variable: a directory where each daemon writes its ``cProfile`` stats."""
+
 V2xHandler = Callable[[ParsedKey, Message, float], None]
 """Receives (parsed key, decoded message, run time of reception) on the event loop."""
+
+
+DECODE_MEMO: Final = 1024
+"""Decoded V2X datagrams remembered per process (:func:`decode_shared`)."""
+
+_DECODED: OrderedDict[bytes, Message] = OrderedDict()
+
+
+def decode_shared(payload: bytes) -> Message:
+    """``protocol.decode`` with a bounded per-process memo (issue 12: CPU per car): the cars
+    of a multi-car host (``services.daemons.host``) each receive the very same datagram,
+    which is decoded once. Messages are immutable; a payload that does not decode is not
+    remembered (``DecodeError`` every time)."""
+    message = _DECODED.get(payload)
+    if message is None:
+        message = decode(payload)
+        _DECODED[payload] = message
+        if len(_DECODED) > DECODE_MEMO:
+            _DECODED.popitem(last=False)
+    return message
 
 
 class RateLimitedLog:
@@ -366,7 +393,8 @@ class DaemonShell:
             )
 
     def start_stats(self) -> None:
-        """Publish a stats report every ``stats_period_s`` until :meth:`close`."""
+        """Publish a stats report at once (the signed "hello" the monitor needs to count
+        this node present, issue 13) and every ``stats_period_s`` until :meth:`close`."""
         if not self._stats_started:
             self._stats_started = True
             self._spawn(self._stats_loop())
@@ -374,8 +402,8 @@ class DaemonShell:
     async def _stats_loop(self) -> None:
         period = self.config.stats_period_s
         while True:
-            await asyncio.sleep(period)
             self.publish_stats(final=False)
+            await asyncio.sleep(period)
 
     async def close(self) -> None:
         """Stop the background tasks, undeclare everything, close the transport; idempotent."""
@@ -575,7 +603,7 @@ class DaemonShell:
             self._malformed(name, key, f"oversized ({len(payload)} B > {MAX_DATAGRAM} B)")
             return
         try:
-            message = decode(payload)
+            message = decode_shared(payload)
         except DecodeError as exc:
             self._malformed(name, key, str(exc))
             return
@@ -1143,8 +1171,24 @@ def run_daemon(config: CommonDaemonConfig, service: Service) -> int:
     """Configure logging (stderr, node id on every line) and run ``service`` on uvloop.
 
     Zenoh's own logs are switched on only when ``RUST_LOG`` is set (they go to stdout).
+    With :data:`PROFILE_ENV` set to a directory, the daemon runs under ``cProfile`` (timed
+    by the event loop thread's CPU time) and writes ``<dir>/<node>.prof`` when it exits
+    (``python -m pstats`` reads it): how the daemons' CPU per car was profiled (issue 12).
     """
     configure_logging(config.log_level, config.node_id, config.log_json)
     if os.environ.get("RUST_LOG"):
         init_zenoh_logging()
-    return run_service(service)
+    target = os.environ.get(PROFILE_ENV)
+    if not target:
+        return run_service(service)
+    import cProfile
+
+    profiler = cProfile.Profile(time.thread_time)  # CPU of the loop's thread, not wall time
+    profiler.enable()
+    try:
+        return run_service(service)
+    finally:
+        profiler.disable()
+        out = Path(target)
+        out.mkdir(parents=True, exist_ok=True)
+        profiler.dump_stats(out / f"{config.node_id}.prof")

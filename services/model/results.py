@@ -70,6 +70,8 @@ __all__ = [
     "RunResult",
     "RunSummary",
     "StreamSummary",
+    "SumoSection",
+    "SumoVehicle",
     "TruthCounts",
     "VehicleResult",
     "schema_json",
@@ -131,6 +133,33 @@ class RunSummary(_Frozen):
     p95_delay_s: NonNegative | None
     throughput_vph: NonNegative | None
     stops_per_vehicle: NonNegative | None
+
+
+class SumoVehicle(_Frozen):
+    """One SUMO vehicle of a co-simulation (``crosspath sumo``, ``services.sumo.cosim``):
+    its SUMO id, whether crosspath drove it (``connected``), SUMO's own ``time_loss_s``
+    and ``depart_delay_s`` from its tripinfo (None when it did not arrive)."""
+
+    sumo_id: str
+    connected: bool
+    time_loss_s: NonNegative | None
+    depart_delay_s: NonNegative | None
+
+
+class SumoSection(_Frozen):
+    """A co-simulation's SUMO side (``services.sumo.cosim`` defines each figure):
+    the network and routes files, SUMO's step [s], the share of vehicles drawn as
+    connected, SUMO's own colliding pairs, its mean ``timeLoss`` over the arrived
+    vehicles, and each vehicle by its crosspath id."""
+
+    net: str
+    routes: str
+    step_s: Annotated[float, Field(gt=0.0)]
+    connected_share: Fraction
+    connected: Count
+    collisions: Count
+    mean_time_loss_s: NonNegative | None
+    vehicles: dict[str, SumoVehicle]
 
 
 class StreamSummary(_Frozen):
@@ -274,6 +303,7 @@ _OPTIONAL: Final = frozenset(
         "lab",
         "provenance",
         "summary",
+        "sumo",
     }
 )
 """Sections written only when set (absent from the JSON when None)."""
@@ -343,6 +373,8 @@ class RunResult(_Frozen):
     provenance: Provenance | None = None
     summary: RunSummary | None = None
     """Traffic figures (in-process runs)."""
+    sumo: SumoSection | None = None
+    """SUMO's side of a co-simulation (``crosspath sumo``)."""
 
     @model_serializer(mode="wrap")
     def _omit_absent_sections(

@@ -177,6 +177,7 @@ class _Car:
     claim: Mode = Mode.AUTO  # the mode its latest future path shows
     changes: int = 0  # mode changes the RSU made in this crossing
     changed_at: float = -math.inf  # when the last one was [s]
+    held_short: bool = False  # its last coordinated path stops it short of the zone
 
     def observe(self, path: VehiclePath) -> None:
         if path.header.time_us >= self.state_us:
@@ -685,6 +686,7 @@ class RsuCore:
         out: list[Outgoing] = []
         vehicle = car.vehicle
         if action == Action.SEND_TERMINATION:
+            car.held_short = False
             out.append(self._command(now, car, Command.TERMINATE, Mode.AUTO))
             self.counters["terminations"] += 1
             self._reserve(now, car, path.points)
@@ -748,7 +750,9 @@ class RsuCore:
     ) -> Outgoing:
         """Compute (unless given), reserve and send the car's coordinated path."""
         if plan is None:
-            plan = self.velocity.plan(car.vehicle, path, car.mode, now, self.table)
+            firm = car.held_short and car.mode == Mode.C_SLOW
+            plan = self.velocity.plan(car.vehicle, path, car.mode, now, self.table, firm=firm)
+        car.held_short = plan.short
         points, speeds = plan.points, plan.speeds
         cap = self.config.max_points
         if cap is not None and points.shape[0] > cap:

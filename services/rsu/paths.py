@@ -343,3 +343,40 @@ def is_approaching(
     here = math.hypot(x - cx, y - cy)
     there = math.hypot(float(points[-1, 0]) - cx, float(points[-1, 1]) - cy)
     return there < here - 0.5 and there <= zone.radius + APPROACH_END_M
+
+
+def zone_entry_s(
+    xy: FloatArray, s: FloatArray, polygon: ConvexZone | npt.ArrayLike, extend_m: float = 0.0
+) -> float | None:
+    """Arc length [m] at which the polyline ``xy`` (M, 2+), arc lengths ``s`` (M,), first
+    touches the zone, the polyline continued straight beyond its end by ``extend_m`` [m]
+    (a body's front reaches past the centre's last point); refined on the crossing segment
+    by bisection. None when it never does (or never moves when it starts outside)."""
+    zone = ConvexZone.of(polygon)
+    pts = np.asarray(xy, dtype=np.float64)[:, :2]
+    arc = np.asarray(s, dtype=np.float64)
+    if pts.shape[0] == 0:
+        return None
+    if extend_m > 0.0 and pts.shape[0] >= 2:
+        heading = heading_of(pts, pts.shape[0] - 2)
+        if heading is not None:
+            tip = pts[-1] + extend_m * np.array([math.cos(heading), math.sin(heading)])
+            pts = np.vstack([pts, tip])
+            arc = np.append(arc, arc[-1] + extend_m)
+    inside = zone.contains(pts)
+    idx = np.flatnonzero(inside)
+    if idx.size == 0:
+        return None
+    i = int(idx[0])
+    if i == 0:
+        return float(arc[0])
+    a, b = pts[i - 1], pts[i]
+    lo, hi = 0.0, 1.0  # lo outside, hi inside (convex: one crossing on the segment)
+    for _ in range(30):
+        mid = 0.5 * (lo + hi)
+        p = a + mid * (b - a)
+        if zone.contains_point(float(p[0]), float(p[1])):
+            hi = mid
+        else:
+            lo = mid
+    return float(arc[i - 1] + hi * (arc[i] - arc[i - 1]))

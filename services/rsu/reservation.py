@@ -22,18 +22,20 @@ largest plausible road vehicle (25 m x 3 m, 10.17 m): the wire allows 50 m x
 search huge; the RSU core counts such paths (``oversize``) and plans them with
 the cap.
 
-Index: a uniform grid over (x, y, t) with cells of ``d_margin`` x ``d_margin``
-x ``headway`` (a hair larger, so that float rounding can never push a
-conflicting pair two cells apart). Each cell key maps to the set of cars with
-a point in it, a car with a growth ``g`` being entered in every cell within
-``ceil(g / cell)`` cells in x and y of its points too; a query looks up the
-neighbourhood of each of its own cells that its own reach (``d_margin`` plus
-its growth plus any margin) spans, 3x3x3 for a standard car, which is then
-guaranteed to contain every point it can conflict with, and checks only those
-cars exactly, all pairs vectorised. A standard car's query stays 3x3x3 while a
-bus is in the table. Cell coordinates wrap modulo 2**21 per axis when packed
-into one integer key; a wrap only adds candidates (the exact check removes
-them), it never loses a conflict.
+Index (issue 14; a jam at one intersection makes nearly every car a candidate, so
+the exact check is batched over all of them): each stored path, densified and sorted
+by time, is cut into *blocks*, its points within one time cell of ``_BLOCK_CELLS``
+headways (a hair longer, so float rounding cannot push a pair further apart in
+cells), each with its bounding box in float32 rounded outwards; the blocks of all
+cars sit in a few packed numpy arrays (about 0.2 KB per car; the path itself is the
+message's own read-only array, not a copy). A query pairs its own blocks with the
+live blocks within the time band by box distance, then each of its points with those
+boxes, then each point with the block's points less than the band apart in time
+(bisection), and checks those pairs exactly in one vectorised pass over all cars.
+Two searches: the crossing rule (pair margin, headway) and the follow rule (follow
+distance, follow window), each with its own radius and band. Every bound carries
+slack far above float rounding: the search only ever adds pairs, the exact predicate
+(the one of ``_pair_conflict``) decides, so the answer equals the brute force's.
 
 Same-lane followers (ours, issue 12): ``d_margin`` is a crossing margin; two 4.5 m
 cars one behind the other in a lane overlap long before their centres are 2.8 m
@@ -75,10 +77,10 @@ FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
 BoolArray = npt.NDArray[np.bool_]
 
-_AXIS_BITS = 21
-_MASK = (1 << _AXIS_BITS) - 1
 _CELL_SLACK = 1.0 + 1e-9
 _REACH_SLACK = 1.0 + 1e-6  # on growths and margins: far more than float rounding
+_BLOCK_CELLS = 2
+"""A stored path's points are grouped in blocks of this many headways (time cells)."""
 
 STANDARD_SHAPE = (DEFAULT_LENGTH_M, DEFAULT_WIDTH_M)
 """The car ``d_margin`` is meant for: length, width [m]."""
@@ -118,17 +120,6 @@ def within_wire_bounds(points: FloatArray) -> bool:
     )
 
 
-def _offsets(rxy: int, rt: int) -> IntArray:
-    """Cell offsets of the (2 rxy + 1)^2 x (2 rt + 1) neighbourhood."""
-    span_xy, span_t = range(-rxy, rxy + 1), range(-rt, rt + 1)
-    return np.array(
-        [(dx, dy, dt) for dx in span_xy for dy in span_xy for dt in span_t], dtype=np.int64
-    )
-
-
-_OFFSETS = {(1, 1): _offsets(1, 1)}
-
-
 def body_growth(length: float, width: float) -> float:
     """How much further [m] a ``length`` x ``width`` [m] body can reach from its centre than
     a standard car's (:data:`STANDARD_SHAPE`): half-diagonal difference, >= 0, the body
@@ -142,12 +133,6 @@ def body_growth(length: float, width: float) -> float:
 def oversize(length: float, width: float) -> bool:
     """The body is beyond what the margin grows for (:func:`body_growth` caps it)."""
     return length > MAX_BODY_LENGTH_M or width > MAX_BODY_WIDTH_M
-
-
-def _plane_offsets(r: int) -> IntArray:
-    """(dx, dy) cell offsets of the (2 r + 1)^2 square."""
-    span = range(-r, r + 1)
-    return np.array([(dx, dy) for dx in span for dy in span], dtype=np.int64)
 
 
 @dataclass(frozen=True, slots=True)
@@ -171,20 +156,22 @@ class Conflict:
 
 @dataclass(slots=True, eq=False)
 class Entry:
-    """One car's reservation: its path, shape, and when it was last refreshed."""
+    """One car's reservation: its path (as sent), shape, and when it was last refreshed
+    (a snapshot the table makes on request; the table keeps it in packed arrays)."""
 
     vehicle: str
     points: FloatArray
     length: float
     width: float
     updated: float
-    keys: IntArray
-    by_time: FloatArray  # the points sorted by pass time (stable), for the exact check
     growth: float = 0.0  # body_growth(length, width) [m]
-    heading_by_time: FloatArray | None = None  # path_headings, in by_time's order
 
     def expires_at(self, expiry_s: float) -> float:
         return self.updated + expiry_s
+
+
+_EMPTY: FloatArray = np.empty((0, 3), dtype=np.float64)
+_EMPTY.flags.writeable = False
 
 
 def path_headings(points: FloatArray) -> FloatArray:
@@ -243,11 +230,6 @@ def densify(points: FloatArray, max_dt: float = MAX_POINT_GAP_S) -> FloatArray:
 def follow_distance(l1: float, l2: float, gap: float) -> float:
     """Centre distance [m] two cars of lengths ``l1``, ``l2`` keep one behind the other."""
     return 0.5 * (min(l1, MAX_BODY_LENGTH_M) + min(l2, MAX_BODY_LENGTH_M)) + gap
-
-
-def _pack(ix: IntArray, iy: IntArray, it: IntArray) -> IntArray:
-    key: IntArray = ((ix & _MASK) << (2 * _AXIS_BITS)) | ((iy & _MASK) << _AXIS_BITS) | (it & _MASK)
-    return key
 
 
 def _pair_conflict(
@@ -317,8 +299,46 @@ def _pair_conflict(
     )
 
 
+def _frozen(points: npt.ArrayLike) -> FloatArray:
+    """``points`` as a read-only float64 array: the caller's own when it already is one
+    (a message's: ``protocol.messages`` freezes them; shared, not copied), else a frozen
+    copy. A read-only array is taken to be immutable."""
+    if type(points) is np.ndarray and points.dtype == np.float64 and not points.flags.writeable:
+        return points
+    pts = np.array(points, dtype=np.float64)
+    pts.flags.writeable = False
+    return pts
+
+
+def _outward32(lo: FloatArray, hi: FloatArray) -> tuple[npt.NDArray[np.float32], ...]:
+    """``lo`` / ``hi`` bounds as float32, rounded outwards (never inside the float64 box)."""
+    lo32 = lo.astype(np.float32)
+    hi32 = hi.astype(np.float32)
+    lo32 = np.where(lo32 > lo, np.nextafter(lo32, np.float32(-np.inf)), lo32)
+    hi32 = np.where(hi32 < hi, np.nextafter(hi32, np.float32(np.inf)), hi32)
+    return lo32, hi32
+
+
+def _expand(counts: IntArray) -> tuple[IntArray, IntArray]:
+    """For ``counts`` (K,) >= 0: (which of the K each of the ``sum(counts)`` items belongs to,
+    its rank within it)."""
+    total = int(counts.sum())
+    owner = np.repeat(np.arange(counts.shape[0]), counts)
+    starts = np.cumsum(counts) - counts
+    rank: IntArray = np.arange(total) - starts[owner]
+    return owner, rank
+
+
 class ReservationTable:
-    """Latest path per car, expiring ``expiry_s`` after its last refresh; space-time indexed."""
+    """Latest path per car, expiring ``expiry_s`` after its last refresh; space-time indexed.
+
+    Storage (issue 14: about 0.3 KB per car besides the path itself): per car a slot in
+    a few numpy columns (refresh time, length, width, growth, point count), its path
+    (the caller's array when it is a read-only float64 one, e.g. a message's: shared,
+    not copied), and its *blocks* (module docstring) in packed arrays shared by all
+    cars. Queries: the module docstring. Headings of stored points are derived from the
+    path when needed (stored only for paths with a stop, or out of time order).
+    """
 
     def __init__(
         self,
@@ -345,32 +365,71 @@ class ReservationTable:
         self._d2 = self.d_margin_m * self.d_margin_m
         self._cell_xy = self.d_margin_m * _CELL_SLACK
         self._cell_t = self.headway_s * _CELL_SLACK
-        self._entries: dict[str, Entry] = {}
-        self._index: dict[int, set[str]] = {}
+        self._block_t = self._cell_t * _BLOCK_CELLS
+        # per car: a slot
+        self._slot: dict[str, int] = {}
+        self._names: list[str] = []
+        self._free: list[int] = []
+        self._orig: list[FloatArray] = []  # the path as sent
+        self._dense: list[FloatArray] = []  # densified, sorted by pass time (stable)
+        self._head: list[FloatArray | None] = []  # headings in _dense's order, when irregular
+        self._entry: list[Entry | None] = []  # made on request (get)
+        cap = 16
+        self._used = np.zeros(cap, dtype=np.bool_)
+        self._updated = np.full(cap, -np.inf)
+        self._length = np.zeros(cap)
+        self._width = np.zeros(cap)
+        self._growth = np.zeros(cap)
+        self._row0 = np.zeros(cap, dtype=np.int64)  # its blocks: rows row0 .. row0 + nrow
+        self._nrow = np.zeros(cap, dtype=np.int64)
+        self._npts = np.zeros(cap, dtype=np.int64)  # points in _dense
+        # blocks of every car, packed (rows of a removed car: slot -1 until compacted)
+        bcap = 64
+        self._rows = 0
+        self._dead = 0
+        self._b_slot = np.full(bcap, -1, dtype=np.int32)
+        self._b_k = np.zeros(bcap, dtype=np.int64)  # time cell
+        self._b_start = np.zeros(bcap, dtype=np.int32)  # its first point (in _dense order)
+        self._b_box = np.zeros((bcap, 4), dtype=np.float32)  # x0, x1, y0, y1 [m]
 
     # -- contents -------------------------------------------------------------------------
 
     def __len__(self) -> int:
-        return len(self._entries)
+        return len(self._slot)
 
     def __contains__(self, vehicle: object) -> bool:
-        return vehicle in self._entries
+        return vehicle in self._slot
 
     def __iter__(self) -> Iterator[str]:
-        return iter(self._entries)
+        return iter(self._slot)
 
     def get(self, vehicle: str) -> Entry | None:
-        return self._entries.get(vehicle)
+        """The car's entry (the same object until its next update; ``touch`` refreshes it)."""
+        s = self._slot.get(vehicle)
+        if s is None:
+            return None
+        entry = self._entry[s]
+        if entry is None:
+            entry = Entry(
+                vehicle,
+                self._orig[s],
+                float(self._length[s]),
+                float(self._width[s]),
+                float(self._updated[s]),
+                float(self._growth[s]),
+            )
+            self._entry[s] = entry
+        return entry
 
     def is_live(self, vehicle: str, now: float) -> bool:
-        entry = self._entries.get(vehicle)
-        return entry is not None and now < entry.updated + self.expiry_s
+        s = self._slot.get(vehicle)
+        return s is not None and now < float(self._updated[s]) + self.expiry_s
 
     def next_expiry(self) -> float:
         """When the next entry expires [s]; ``inf`` for an empty table."""
-        if not self._entries:
+        if not self._slot:
             return math.inf
-        return min(e.updated for e in self._entries.values()) + self.expiry_s
+        return float(self._updated[self._used].min()) + self.expiry_s
 
     # -- updates --------------------------------------------------------------------------
 
@@ -379,6 +438,90 @@ class ReservationTable:
         iy = np.floor(points[:, 1] / self._cell_xy).astype(np.int64)
         it = np.floor(points[:, 2] / self._cell_t).astype(np.int64)
         return ix, iy, it
+
+    def _new_slot(self) -> int:
+        if self._free:
+            return self._free.pop()
+        s = len(self._names)
+        cap = self._used.shape[0]
+        if s >= cap:
+            grow = max(cap // 2, 16)
+            self._used = np.concatenate([self._used, np.zeros(grow, dtype=np.bool_)])
+            self._updated = np.concatenate([self._updated, np.full(grow, -np.inf)])
+            self._length = np.concatenate([self._length, np.zeros(grow)])
+            self._width = np.concatenate([self._width, np.zeros(grow)])
+            self._growth = np.concatenate([self._growth, np.zeros(grow)])
+            self._row0 = np.concatenate([self._row0, np.zeros(grow, dtype=np.int64)])
+            self._nrow = np.concatenate([self._nrow, np.zeros(grow, dtype=np.int64)])
+            self._npts = np.concatenate([self._npts, np.zeros(grow, dtype=np.int64)])
+        self._names.append("")
+        self._orig.append(_EMPTY)
+        self._dense.append(_EMPTY)
+        self._head.append(None)
+        self._entry.append(None)
+        return s
+
+    def _drop_rows(self, s: int) -> None:
+        n = int(self._nrow[s])
+        if n:
+            r0 = int(self._row0[s])
+            self._b_slot[r0 : r0 + n] = -1
+            self._dead += n
+            self._nrow[s] = 0
+
+    def _add_rows(self, s: int, dense: FloatArray) -> None:
+        n_pts = dense.shape[0]
+        if n_pts == 0:
+            return
+        k = np.floor(dense[:, 2] / self._block_t).astype(np.int64)
+        starts = np.concatenate(([0], np.flatnonzero(np.diff(k)) + 1))
+        n = starts.shape[0]
+        if self._dead > 64 and self._dead > self._rows - self._dead:
+            self._compact()
+        if self._rows + n > self._b_slot.shape[0]:
+            grow = max(self._b_slot.shape[0] // 4, n, 64)
+            self._b_slot = np.concatenate([self._b_slot, np.full(grow, -1, dtype=np.int32)])
+            self._b_k = np.concatenate([self._b_k, np.zeros(grow, dtype=np.int64)])
+            self._b_start = np.concatenate([self._b_start, np.zeros(grow, dtype=np.int32)])
+            self._b_box = np.concatenate([self._b_box, np.zeros((grow, 4), dtype=np.float32)])
+        r0 = self._rows
+        rows = slice(r0, r0 + n)
+        self._b_slot[rows] = s
+        self._b_k[rows] = k[starts]
+        self._b_start[rows] = starts
+        x0, x1 = _outward32(
+            np.minimum.reduceat(dense[:, 0], starts), np.maximum.reduceat(dense[:, 0], starts)
+        )
+        y0, y1 = _outward32(
+            np.minimum.reduceat(dense[:, 1], starts), np.maximum.reduceat(dense[:, 1], starts)
+        )
+        box = self._b_box[rows]
+        box[:, 0], box[:, 1], box[:, 2], box[:, 3] = x0, x1, y0, y1
+        self._row0[s] = r0
+        self._nrow[s] = n
+        self._rows += n
+
+    def _stops(self, rows: IntArray) -> IntArray:
+        """End (exclusive, in its car's points) of each block row: the next row's start
+        when that is the same car's, else the car's point count."""
+        slot = self._b_slot[rows]
+        nxt = np.minimum(rows + 1, self._b_slot.shape[0] - 1)
+        same = (rows + 1 < self._rows) & (self._b_slot[nxt] == slot)
+        out: IntArray = np.where(same, self._b_start[nxt], self._npts[slot])
+        return out
+
+    def _compact(self) -> None:
+        """Drop the rows of removed cars (each car's rows stay together, in order)."""
+        keep = np.flatnonzero(self._b_slot[: self._rows] >= 0)
+        n = keep.shape[0]
+        for arr in (self._b_slot, self._b_k, self._b_start, self._b_box):
+            arr[:n] = arr[keep]
+        self._b_slot[n:] = -1
+        self._rows = n
+        self._dead = 0
+        if n:
+            slots, first = np.unique(self._b_slot[:n], return_index=True)
+            self._row0[slots] = first
 
     def update(
         self,
@@ -390,9 +533,10 @@ class ReservationTable:
         """Store ``points`` (N, 3) as the car's reservation, refreshed at ``now``.
 
         Raises ValueError (and changes nothing) for a wrong shape or non-finite
-        or absurdly large values.
+        or absurdly large values. A frozen float64 array (a decoded message's) is kept
+        as is, not copied: it must not change afterwards (numpy refuses writes to it).
         """
-        pts = np.array(points, dtype=np.float64)
+        pts = _frozen(points)
         if pts.ndim != 2 or pts.shape[1] != 3:
             raise ValueError(f"a path is an (N, 3) array of x, y, t; got shape {pts.shape}")
         if not within_wire_bounds(pts):
@@ -401,74 +545,78 @@ class ReservationTable:
             raise ValueError("now must be finite")
         length, width = float(shape[0]), float(shape[1])
         growth = body_growth(length, width)
-        pts.flags.writeable = False
         # indexed and checked densified (MAX_POINT_GAP_S); the entry keeps the path as sent
-        dense = densify(pts) if bool(np.all(np.diff(pts[:, 2]) >= 0.0)) else pts
-        ix, iy, it = self._cells(dense)
-        k = self._cells_for(growth)
-        if k and dense.shape[0]:
-            # entered in every cell its grown body reaches too (see the module docstring)
-            plane = _plane_offsets(k)
-            keys: IntArray = np.unique(
-                _pack(ix[:, None] + plane[None, :, 0], iy[:, None] + plane[None, :, 1], it[:, None])
-            )
-        else:
-            keys = np.unique(_pack(ix, iy, it))
-        self._unindex(vehicle)
-        index = self._index
-        for key in keys.tolist():
-            cell = index.get(key)
-            if cell is None:
-                index[key] = {vehicle}
+        in_order = bool(np.all(np.diff(pts[:, 2]) >= 0.0))
+        dense = densify(pts) if in_order else pts
+        head: FloatArray | None = None
+        if in_order:
+            n = dense.shape[0]
+            if n >= 2:
+                seg = np.diff(dense[:, :2], axis=0)
+                regular = bool(np.all(np.hypot(seg[:, 0], seg[:, 1]) > 1e-6))
             else:
-                cell.add(vehicle)
-        order = np.argsort(dense[:, 2], kind="stable")
-        by_time = dense[order] if dense.shape[0] else dense
-        headings = path_headings(dense)[order] if dense.shape[0] else np.empty((0, 2))
-        self._entries[vehicle] = Entry(
-            vehicle, pts, length, width, float(now), keys, by_time, growth, headings
-        )
+                regular = False
+            if not regular:  # a held stop, or too short to head anywhere: stored
+                head = path_headings(dense)
+        else:
+            order = np.argsort(dense[:, 2], kind="stable")
+            head = path_headings(dense)[order]
+            dense = dense[order]
+        s = self._slot.get(vehicle)
+        if s is None:
+            s = self._new_slot()
+            self._slot[vehicle] = s
+        else:
+            self._drop_rows(s)
+        self._names[s] = vehicle
+        self._orig[s] = pts
+        self._dense[s] = dense
+        self._head[s] = head
+        self._entry[s] = None
+        self._used[s] = True
+        self._updated[s] = float(now)
+        self._length[s] = length
+        self._width[s] = width
+        self._growth[s] = growth
+        self._npts[s] = dense.shape[0]
+        self._add_rows(s, dense)
 
     def touch(self, vehicle: str, now: float) -> bool:
         """Refresh a car's entry without changing its path (the car is alive)."""
-        entry = self._entries.get(vehicle)
-        if entry is None:
+        s = self._slot.get(vehicle)
+        if s is None:
             return False
-        entry.updated = max(entry.updated, float(now))
+        self._updated[s] = max(float(self._updated[s]), float(now))
+        entry = self._entry[s]
+        if entry is not None:
+            entry.updated = float(self._updated[s])
         return True
-
-    def _unindex(self, vehicle: str) -> None:
-        entry = self._entries.get(vehicle)
-        if entry is None:
-            return
-        index = self._index
-        for key in entry.keys.tolist():
-            cell = index.get(key)
-            if cell is not None:
-                cell.discard(vehicle)
-                if not cell:
-                    del index[key]
 
     def remove(self, vehicle: str) -> bool:
         """Drop a car's entry; False if it had none."""
-        if vehicle not in self._entries:
+        s = self._slot.pop(vehicle, None)
+        if s is None:
             return False
-        self._unindex(vehicle)
-        del self._entries[vehicle]
+        self._drop_rows(s)
+        self._used[s] = False
+        self._updated[s] = -np.inf
+        self._orig[s] = self._dense[s] = _EMPTY
+        self._head[s] = self._entry[s] = None
+        self._names[s] = ""
+        self._free.append(s)
         return True
 
     def expire(self, now: float) -> list[str]:
         """Drop every entry not refreshed for ``expiry_s``; return their cars."""
-        gone = [v for v, e in self._entries.items() if now >= e.updated + self.expiry_s]
+        old = self._used & (now >= self._updated + self.expiry_s)
+        if not old.any():
+            return []
+        gone = [v for v, s in self._slot.items() if old[s]]
         for vehicle in gone:
             self.remove(vehicle)
         return gone
 
     # -- queries --------------------------------------------------------------------------
-
-    def _cells_for(self, reach: float) -> int:
-        """Cells a ``reach`` [m] >= 0 beyond a cell's own spans (0 for none), with slack."""
-        return math.ceil(reach * _REACH_SLACK / self._cell_xy) if reach > 0.0 else 0
 
     def _limits(self, margin_m: float, margin_s: float) -> tuple[float, float]:
         """The querying car's own reach [m] (``d_margin`` + its growth + ``margin_m``;
@@ -481,24 +629,8 @@ class ReservationTable:
         """The querying car's growth [m]: of ``shape``, else of its own entry's shape, else 0."""
         if shape is not None:
             return body_growth(float(shape[0]), float(shape[1]))
-        entry = self._entries.get(vehicle)
-        return 0.0 if entry is None else entry.growth
-
-    def _window(self, points: FloatArray, now: float, horizon_s: float) -> FloatArray:
-        t = points[:, 2]
-        windowed: FloatArray = points[(t >= now) & (t <= now + horizon_s)]
-        return windowed
-
-    def _window_sorted(
-        self, entry: Entry, now: float, horizon_s: float
-    ) -> tuple[FloatArray, FloatArray]:
-        t = entry.by_time[:, 2]
-        lo = int(np.searchsorted(t, now, side="left"))
-        hi = int(np.searchsorted(t, now + horizon_s, side="right"))
-        headings = entry.heading_by_time
-        if headings is None:
-            headings = np.full((entry.by_time.shape[0], 2), np.nan)
-        return entry.by_time[lo:hi], headings[lo:hi]
+        s = self._slot.get(vehicle)
+        return 0.0 if s is None else float(self._growth[s])
 
     @staticmethod
     def _densified(
@@ -512,17 +644,11 @@ class ReservationTable:
         inside = (t >= now) & (t <= now + horizon_s)
         return points, inside, points[inside]
 
-    def _follow_reach(self, length: float) -> float:
-        """How far beyond ``d_margin`` the follow rule reaches for a car this long [m]
-        (against the longest body in the table), for the neighbourhood search."""
-        longest = max((e.length for e in self._entries.values()), default=length)
-        return max(0.0, follow_distance(length, longest, self.follow_gap_m) - self.d_margin_m)
-
     def _query_shape(self, vehicle: str, shape: tuple[float, float] | None) -> tuple[float, float]:
         if shape is not None:
             return float(shape[0]), float(shape[1])
-        entry = self._entries.get(vehicle)
-        return STANDARD_SHAPE if entry is None else (entry.length, entry.width)
+        s = self._slot.get(vehicle)
+        return STANDARD_SHAPE if s is None else (float(self._length[s]), float(self._width[s]))
 
     @staticmethod
     def _lane_reach(w1: float, w2: float) -> float:
@@ -530,17 +656,79 @@ class ReservationTable:
         widths plus :data:`LANE_SLACK_M` (less than a lane's width, 3.5 m for two cars)."""
         return 0.5 * (min(w1, MAX_BODY_WIDTH_M) + min(w2, MAX_BODY_WIDTH_M)) + LANE_SLACK_M
 
-    def _others(
-        self, vehicle: str, now: float, exclude: Collection[str], candidates: Collection[str]
-    ) -> list[Entry]:
+    def _live(self, vehicle: str, now: float, exclude: Collection[str]) -> BoolArray:
+        """Per slot, plus a last False for slot -1: a live entry of another, not excluded car."""
+        cap = self._used.shape[0]
+        live = np.zeros(cap + 1, dtype=np.bool_)
+        live[:cap] = now < self._updated + self.expiry_s
+        for v in (vehicle, *exclude):
+            s = self._slot.get(v)
+            if s is not None:
+                live[s] = False
+        return live
+
+    def _near(
+        self, q: FloatArray, live: BoolArray, rules: Sequence[tuple[FloatArray, float]]
+    ) -> list[tuple[IntArray, IntArray]]:
+        """Per rule (radius per slot [m], band [s]): pairs (index into ``q``, block row) of
+        a query point and a live block that may hold a point less than the band from it
+        in time and within the radius in space (a superset: the bounds carry slack far
+        above float rounding). Blocks are first paired with the query's own blocks (its
+        points by time cell) by box distance, for all rules at once, then with its points."""
+        none = np.empty(0, dtype=np.int64)
+        empty = [(none, none) for _ in rules]
+        rows = self._rows
+        if rows == 0 or q.shape[0] == 0:
+            return empty
+        sel = np.flatnonzero(live[self._b_slot[:rows]])
+        if sel.shape[0] == 0:
+            return empty
+        cell = self._block_t
+        radius_all = np.maximum.reduce([r for r, _ in rules])
+        rt = max(1, math.ceil(max(band for _, band in rules) / cell))
+        qk_all = np.floor(q[:, 2] / cell).astype(np.int64)
+        qorder = np.argsort(qk_all, kind="stable")
+        qk = qk_all[qorder]
+        qstart = np.concatenate(([0], np.flatnonzero(np.diff(qk)) + 1))
+        qstop = np.append(qstart[1:], qk.shape[0])
+        uk = qk[qstart]
+        qx, qy, qt = q[qorder, 0], q[qorder, 1], q[qorder, 2]
+        qx0, qx1 = np.minimum.reduceat(qx, qstart), np.maximum.reduceat(qx, qstart)
+        qy0, qy1 = np.minimum.reduceat(qy, qstart), np.maximum.reduceat(qy, qstart)
+        # block pairs within rt time cells, by box distance
+        bk = self._b_k[sel]
+        lo = np.searchsorted(uk, bk - rt, side="left")
+        hi = np.searchsorted(uk, bk + rt, side="right")
+        which, rank = _expand(hi - lo)
+        if which.shape[0] == 0:
+            return empty
+        rows_b = sel[which]
+        jq = lo[which] + rank
+        box = self._b_box[rows_b].astype(np.float64)
+        r = radius_all[self._b_slot[rows_b]]
+        gx = np.maximum(np.maximum(box[:, 0] - qx1[jq], qx0[jq] - box[:, 1]), 0.0)
+        gy = np.maximum(np.maximum(box[:, 2] - qy1[jq], qy0[jq] - box[:, 3]), 0.0)
+        ok = gx * gx + gy * gy <= r * r
+        rows_b, jq, box = rows_b[ok], jq[ok], box[ok]
+        if rows_b.shape[0] == 0:
+            return empty
+        # each point of the query block against the block's box and time cell
+        which, rank = _expand(qstop[jq] - qstart[jq])
+        pos = qstart[jq][which] + rank
+        rows_b, box = rows_b[which], box[which]
+        px, py, pt = qx[pos], qy[pos], qt[pos]
+        gx = np.maximum(np.maximum(box[:, 0] - px, px - box[:, 1]), 0.0)
+        gy = np.maximum(np.maximum(box[:, 2] - py, py - box[:, 3]), 0.0)
+        g2 = gx * gx + gy * gy
+        t0 = self._b_k[rows_b] * cell
+        gt = np.maximum(np.maximum(t0 - pt, pt - (t0 + cell)), 0.0)
+        slack = 1e-9 * (np.abs(pt) + cell)
+        slot = self._b_slot[rows_b]
         out = []
-        for other in candidates:
-            if other == vehicle or other in exclude:
-                continue
-            entry = self._entries[other]
-            if now < entry.updated + self.expiry_s:
-                out.append(entry)
-        out.sort(key=lambda e: e.vehicle)
+        for radius, band in rules:
+            r = radius[slot]
+            ok = (g2 <= r * r) & (gt < band * _REACH_SLACK + slack)
+            out.append((qorder[pos[ok]], rows_b[ok]))
         return out
 
     def candidates(
@@ -550,34 +738,14 @@ class ReservationTable:
         margin_s: float = 0.0,
         growth_m: float = 0.0,
     ) -> set[str]:
-        """Cars with a point in the cell neighbourhood of any of ``points``.
-
-        The neighbourhood is 3x3x3 cells without margins or growth (``growth_m``,
-        the querying car's :func:`body_growth`); wider when they make the reach
-        exceed one cell.
-        """
-        if points.shape[0] == 0 or not self._index:
-            return set()
-        rxy = max(1, 1 + self._cells_for(margin_m + growth_m))
-        rt = max(1, math.ceil((self.headway_s + margin_s) / self._cell_t))
-        offsets = _OFFSETS.get((rxy, rt))
-        if offsets is None:
-            offsets = _OFFSETS.setdefault((rxy, rt), _offsets(rxy, rt))
-        ix, iy, it = self._cells(points)
-        _, first = np.unique(_pack(ix, iy, it), return_index=True)
-        ix, iy, it = ix[first], iy[first], it[first]
-        keys = _pack(
-            ix[:, None] + offsets[None, :, 0],
-            iy[:, None] + offsets[None, :, 1],
-            it[:, None] + offsets[None, :, 2],
-        )
-        found: set[str] = set()
-        get = self._index.get
-        for key in np.unique(keys).tolist():
-            cell = get(key)
-            if cell:
-                found |= cell
-        return found
+        """Cars (live or not) with a block near enough to any of ``points`` to hold a
+        point within ``d_margin`` (plus the margins and both growths) and the headway."""
+        reach, headway = self._limits(margin_m + growth_m, margin_s)
+        live = np.zeros(self._used.shape[0] + 1, dtype=np.bool_)
+        live[:-1] = self._used
+        radius = (reach + self._growth) * _REACH_SLACK + 1e-9
+        ((_, rows),) = self._near(np.asarray(points, dtype=np.float64), live, [(radius, headway)])
+        return {self._names[s] for s in np.unique(self._b_slot[rows]).tolist()}
 
     def conflicts(
         self,
@@ -596,9 +764,7 @@ class ReservationTable:
         query only: a conflict "by a margin" (used for hysteresis). ``shape`` is the
         querying car's length, width [m] (default: its entry's, else a standard car's).
         """
-        found = list(
-            self._scan(vehicle, points, now, horizon_s, exclude, margin_m, margin_s, (), shape)
-        )
+        found = self._batch(vehicle, points, now, horizon_s, exclude, margin_m, margin_s, shape)
         found.sort(key=lambda c: (c.time, c.vehicle))
         return found
 
@@ -614,13 +780,15 @@ class ReservationTable:
         margin_m: float = 0.0,
         margin_s: float = 0.0,
     ) -> Conflict | None:
-        """Any one conflict (checking the cars in ``prefer`` first), or None: cheaper than all."""
-        scan = self._scan(
-            vehicle, points, now, horizon_s, exclude, margin_m, margin_s, prefer, shape
-        )
-        return next(scan, None)
+        """One conflict, or None: with the first car of ``prefer`` that has one, else with
+        the first car by id."""
+        found = self._batch(vehicle, points, now, horizon_s, exclude, margin_m, margin_s, shape)
+        if not found:
+            return None
+        rank = {v: i for i, v in enumerate(prefer)}
+        return min(found, key=lambda c: (rank.get(c.vehicle, len(rank)), c.vehicle))
 
-    def _scan(
+    def _batch(
         self,
         vehicle: str,
         points: npt.ArrayLike,
@@ -629,32 +797,154 @@ class ReservationTable:
         exclude: Collection[str],
         margin_m: float,
         margin_s: float,
-        prefer: Sequence[str],
         shape: tuple[float, float] | None,
-    ) -> Iterator[Conflict]:
+    ) -> list[Conflict]:
+        """Every conflict, all cars at once (class docstring), in no particular order."""
         # densified first: a long segment may have no original point in the window
         full, inside, q = self._densified(_checked(points), now, horizon_s)
-        if q.shape[0] == 0:
-            return
-        hq = path_headings(full)[inside]
+        if q.shape[0] == 0 or self._rows == 0:
+            return []
         growth = self.growth_of(vehicle, shape)
         length, width = self._query_shape(vehicle, shape)
         reach, headway = self._limits(margin_m + growth, margin_s)
-        extra = max(margin_m + growth, margin_m + self._follow_reach(length))
-        found = self.candidates(q, extra, margin_s, 0.0)
-        others = self._others(vehicle, now, exclude, found)
-        if prefer:
-            rank = {v: i for i, v in enumerate(prefer)}
-            others.sort(key=lambda e: rank.get(e.vehicle, len(rank)))
-        for entry in others:
-            o, ho = self._window_sorted(entry, now, horizon_s)
-            d = reach + entry.growth
-            f = follow_distance(length, entry.length, self.follow_gap_m)
-            lat = self._lane_reach(width, entry.width)
-            follow = (hq, ho, f * f, self.follow_window_s + margin_s, lat)
-            conflict = _pair_conflict(entry.vehicle, q, o, d * d, headway, follow)
-            if conflict is not None:
-                yield conflict
+        window = self.follow_window_s + margin_s
+        # per slot: crossing margin, follow distance, lane reach (the pair's, as in the
+        # per-pair check) and the larger of the first two as the search radius
+        d_slot = reach + self._growth
+        f_slot = (
+            0.5 * (min(length, MAX_BODY_LENGTH_M) + np.minimum(self._length, MAX_BODY_LENGTH_M))
+            + self.follow_gap_m
+        )
+        lat_slot = (
+            0.5 * (min(width, MAX_BODY_WIDTH_M) + np.minimum(self._width, MAX_BODY_WIDTH_M))
+            + LANE_SLACK_M
+        )
+        live = self._live(vehicle, now, exclude)
+        # two searches: the crossing rule (d, headway) and the follow rule (f, window);
+        # a pair that meets both may come twice, which changes no minimum below
+        rules = [(d_slot * _REACH_SLACK + 1e-9, headway), (f_slot * _REACH_SLACK + 1e-9, window)]
+        pairs = [
+            (rule, qi, rows)
+            for rule, (qi, rows) in enumerate(self._near(q, live, rules))
+            if qi.shape[0]
+        ]
+        if not pairs:
+            return []
+        # the stored points of those blocks, packed: one array for every car involved
+        mark = np.zeros(self._used.shape[0], dtype=np.bool_)
+        for _, _, rows in pairs:
+            mark[self._b_slot[rows]] = True
+        slots = np.flatnonzero(mark)
+        dense = self._dense
+        arrays = [dense[s] for s in slots.tolist()]
+        sizes = np.array([a.shape[0] for a in arrays], dtype=np.int64)
+        offset = np.zeros(self._used.shape[0], dtype=np.int64)
+        offset[slots] = np.cumsum(sizes) - sizes
+        size = np.zeros(self._used.shape[0], dtype=np.int64)
+        size[slots] = sizes
+        packed = np.concatenate(arrays) if len(arrays) > 1 else arrays[0]
+        # pass times made one ascending sequence (each car's shifted past the one before
+        # by more than its span and the bands), to find within each block the points
+        # less than a band from a query point by bisection; slack as in _pair_conflict
+        pt = packed[:, 2]
+        t_lo, t_hi = float(pt.min()), float(pt.max())
+        span = (t_hi - t_lo) + 2.0 * headway + 1.0
+        shift = np.zeros(self._used.shape[0])
+        shift[slots] = np.arange(slots.shape[0]) * span - t_lo
+        seq = pt + np.repeat(shift[slots], sizes)
+        end = now + horizon_s
+        found_q, found_o, found_owner = [], [], []
+        for rule, qi, rows in pairs:
+            slot_of_row = self._b_slot[rows].astype(np.int64)
+            first = self._b_start[rows].astype(np.int64) + offset[slot_of_row]
+            last = self._stops(rows) + offset[slot_of_row]
+            band = headway if rule == 0 else window
+            at = q[qi, 2] + shift[slot_of_row]
+            reach = band + 1e-9 * (np.abs(at) + span)
+            lo = np.maximum(np.searchsorted(seq, at - reach, side="left"), first)
+            hi = np.minimum(np.searchsorted(seq, at + reach, side="right"), last)
+            which, rank = _expand(np.maximum(hi - lo, 0))
+            qi = qi[which]
+            owner = slot_of_row[which]
+            oj = lo[which] + rank
+            o = packed[oj]
+            qq = q[qi]
+            dx = qq[:, 0] - o[:, 0]
+            dy = qq[:, 1] - o[:, 1]
+            dist2 = dx * dx + dy * dy
+            ot = o[:, 2]
+            gap_t = np.abs(qq[:, 2] - ot)
+            inw = (ot >= now) & (ot <= end)
+            # the exact predicate, as in _pair_conflict
+            if rule == 0:
+                d = d_slot[owner]
+                hit = (dist2 <= d * d) & (gap_t < headway) & inw
+            else:
+                f = f_slot[owner]
+                maybe = np.flatnonzero((dist2 <= f * f) & (gap_t < window) & inw)
+                hq = path_headings(full)[inside][qi[maybe]]
+                ho = self._headings(packed, oj[maybe], owner[maybe], offset, size)
+                mdx, mdy = dx[maybe], dy[maybe]
+                cos = hq[:, 0] * ho[:, 0] + hq[:, 1] * ho[:, 1]
+                q_still, o_still = np.isnan(hq[:, 0]), np.isnan(ho[:, 0])
+                same_way = (cos >= _SAME_WAY_COS) | (q_still ^ o_still)
+                ux = np.where(q_still, ho[:, 0], hq[:, 0])
+                uy = np.where(np.isnan(hq[:, 1]), ho[:, 1], hq[:, 1])
+                side = np.abs(ux * mdy - uy * mdx)
+                hit = np.zeros(qi.shape[0], dtype=np.bool_)
+                hit[maybe] = same_way & (side <= lat_slot[owner[maybe]])
+            found_q.append(qi[hit])
+            found_o.append(oj[hit])
+            found_owner.append(owner[hit])
+        qi = np.concatenate(found_q)
+        if qi.shape[0] == 0:
+            return []
+        owner = np.concatenate(found_owner)
+        qt = q[qi, 2]
+        ot = packed[np.concatenate(found_o), 2]
+        order = np.argsort(owner, kind="stable")
+        qi, owner, qt, ot = qi[order], owner[order], qt[order], ot[order]
+        cut = np.concatenate(([0], np.flatnonzero(np.diff(owner)) + 1))
+        time = np.minimum.reduceat(np.maximum(qt, ot), cut)
+        self_time = np.minimum.reduceat(qt, cut)
+        other_time = np.minimum.reduceat(ot, cut)
+        first = np.minimum.reduceat(qi, cut)
+        names = self._names
+        return [
+            Conflict(names[s], tm, st, ot_, float(q[i, 0]), float(q[i, 1]))
+            for s, tm, st, ot_, i in zip(
+                owner[cut].tolist(),
+                time.tolist(),
+                self_time.tolist(),
+                other_time.tolist(),
+                first.tolist(),
+                strict=True,
+            )
+        ]
+
+    def _headings(
+        self, packed: FloatArray, oj: IntArray, owner: IntArray, offset: IntArray, size: IntArray
+    ) -> FloatArray:
+        """Headings (K, 2) of the packed stored points ``oj`` (of slots ``owner``): as
+        :func:`path_headings` gives them (the segment leaving the point, the last one's
+        for the last point), stored for the irregular paths."""
+        local = oj - offset[owner]
+        out: FloatArray = np.full((oj.shape[0], 2), np.nan)
+        if packed.shape[0] >= 2:
+            # (a path of fewer than two points is irregular: its NaN headings are stored)
+            seg = offset[owner] + np.minimum(local, size[owner] - 2)
+            seg = np.clip(seg, 0, packed.shape[0] - 2)
+            step = packed[seg + 1, :2] - packed[seg, :2]
+            length = np.hypot(step[:, 0], step[:, 1])
+            with np.errstate(divide="ignore", invalid="ignore"):
+                out = step / length[:, None]
+        head = self._head
+        for s in np.unique(owner).tolist():
+            stored = head[s]
+            if stored is not None:
+                mine = owner == s
+                out[mine] = stored[local[mine]]
+        return out
 
     def naive_conflicts(
         self,
@@ -667,19 +957,29 @@ class ReservationTable:
         margin_s: float = 0.0,
         shape: tuple[float, float] | None = None,
     ) -> list[Conflict]:
-        """Same answer as ``conflicts`` by brute force: every point pair of every entry."""
+        """Same answer as ``conflicts`` by brute force: every point pair of every entry
+        (vectorised per entry, one :func:`_pair_conflict` call each; an entry's headings
+        are derived from its path on the way, :func:`path_headings`)."""
         full, inside, q = self._densified(_checked(points), now, horizon_s)
         hq = path_headings(full)[inside]
         length, width = self._query_shape(vehicle, shape)
         reach, headway = self._limits(margin_m + self.growth_of(vehicle, shape), margin_s)
+        live = self._live(vehicle, now, exclude)
         found = []
-        for entry in self._others(vehicle, now, exclude, list(self._entries)):
-            o, ho = self._window_sorted(entry, now, horizon_s)
-            d = reach + entry.growth
-            f = follow_distance(length, entry.length, self.follow_gap_m)
-            lat = self._lane_reach(width, entry.width)
+        for other in sorted(v for v, s in self._slot.items() if live[s]):
+            s = self._slot[other]
+            dense = self._dense[s]
+            head = self._head[s]
+            heads = path_headings(dense) if head is None else head
+            t = dense[:, 2]
+            lo = int(np.searchsorted(t, now, side="left"))
+            hi = int(np.searchsorted(t, now + horizon_s, side="right"))
+            o, ho = dense[lo:hi], heads[lo:hi]
+            d = reach + float(self._growth[s])
+            f = follow_distance(length, float(self._length[s]), self.follow_gap_m)
+            lat = self._lane_reach(width, float(self._width[s]))
             follow = (hq, ho, f * f, self.follow_window_s + margin_s, lat)
-            conflict = _pair_conflict(entry.vehicle, q, o, d * d, headway, follow)
+            conflict = _pair_conflict(other, q, o, d * d, headway, follow)
             if conflict is not None:
                 found.append(conflict)
         found.sort(key=lambda c: (c.time, c.vehicle))

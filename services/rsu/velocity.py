@@ -83,6 +83,12 @@ _MAX_HOLDS = 20
 HARD_STOP_FACTOR = 2.0
 """A stop short of the zone may brake up to this many times the comfortable deceleration
 (4 m/s² by default, within the 5 m/s² emergency limit)."""
+FIRM_STOP_FACTOR = 2.5
+"""A car already told to stop short of the zone keeps that stop braking up to this many
+times the comfortable deceleration (5 m/s² by default, the emergency limit): re-planned
+every 0.1 s from a speed a little above its plan's (actuator lag, rounding), a stop at
+exactly the hard limit would otherwise slide into the zone (found by the invariant's
+property test)."""
 _STOP_SLACK_M = 0.5  # a stop behind a car ahead keeps this more than the follow distance
 _VC_GRID = 24
 _VC_ROUNDS = 3
@@ -102,6 +108,8 @@ class SpeedPlan:
     speeds: FloatArray
     kind: str
     entry_time: float = math.inf
+    short: bool = False
+    """A stop whose body stays short of the zone (``stop_gap_m`` before it)."""
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -190,6 +198,21 @@ def _segment_times(d: FloatArray, v: FloatArray) -> FloatArray:
         with np.errstate(divide="ignore", invalid="ignore"):
             dt[1:] = np.where(d[1:] <= 0.0, 0.0, np.where(mean > 0.0, d[1:] / mean, np.inf))
     return dt
+
+
+def _box(xy: FloatArray) -> tuple[float, float, float, float]:
+    """x0, x1, y0, y1 [m] of the points ``xy`` (M >= 1)."""
+    x, y = xy[:, 0], xy[:, 1]
+    return float(x.min()), float(x.max()), float(y.min()), float(y.max())
+
+
+def _beyond(box: tuple[float, float, float, float], x: float, y: float, reach: float) -> bool:
+    """(x, y) is farther than ``reach`` [m] from the box, so from any point of a polyline
+    inside it: ``paths.project`` would find it farther too (a cheap test before it; the
+    slack is far above float rounding). Issue 14: the projections were the RSU's cost."""
+    dx = max(box[0] - x, x - box[1], 0.0)
+    dy = max(box[2] - y, y - box[3], 0.0)
+    return dx * dx + dy * dy > (reach + 1e-6) ** 2
 
 
 def _holds(x: float, y: float, t_from: float, t_until: float, step: float) -> FloatArray:
@@ -285,15 +308,20 @@ class VelocityManager:
         now: float,
         table: ReservationTable,
         exclude: Collection[str] = (),
+        *,
+        firm: bool = False,
     ) -> SpeedPlan:
         """Coordinated path body for ``vehicle`` in ``mode`` from its autonomous ``path``,
-        with the limits the path declares (else the configuration's)."""
+        with the limits the path declares (else the configuration's). ``firm``: the car
+        was last told to stop short of the zone (``SpeedPlan.short``), and keeps that
+        stop braking up to ``FIRM_STOP_FACTOR``."""
         cfg = self.config
         track = _track(path, self.limits_of(path), now, cfg.t_free_s)
         if mode == Mode.C_FAST:
             return self.behind_leaders(vehicle, track, self._fast(track), now, table, exclude)
         if mode == Mode.C_SLOW:
-            limit = self.stop_limit(vehicle, track, now, table, exclude)
+            factor = FIRM_STOP_FACTOR if firm else HARD_STOP_FACTOR
+            limit = self.stop_limit(vehicle, track, now, table, exclude, factor)
             if self.policy == Policy.SLOT:
                 plan = self._slot(vehicle, track, now, table, exclude)
                 if plan.kind != "slot_fallback":
@@ -301,6 +329,19 @@ class VelocityManager:
                 return self._stop(track, "slot_fallback", limit)
             return self._stop(track, "stop", limit)
         raise ValueError(f"no coordinated path for mode {mode!r}")
+
+    def zone_edge(self, tr: _Track) -> float | None:
+        """Arc length [m] where the car's centre stands when its front is ``stop_gap_m``
+        short of the zone (its path continued straight past its end: a path that stops
+        just before the zone may still hold the body's front in it); None when its front
+        never reaches the zone or is already within that gap of it."""
+        half = 0.5 * tr.length
+        gap = self.config.stop_gap_m
+        s_zone = paths.zone_entry_s(tr.xy, tr.s, self.zone, half + gap)
+        if s_zone is None:
+            return None
+        edge = s_zone - half - gap
+        return edge if edge > 0.0 else None
 
     def limits_of(self, path: VehiclePath) -> VehicleLimits:
         """The limits to plan ``path``'s car with: its declared ones, else the RSU's."""
@@ -324,6 +365,7 @@ class VelocityManager:
         out: list[tuple[FloatArray, FloatArray, float]] = []
         if tr.xy.shape[0] < 2:
             return out
+        box = _box(tr.xy)
         for other in table:
             entry = table.get(other)
             if other == vehicle or other in exclude or entry is None:
@@ -332,6 +374,8 @@ class VelocityManager:
                 continue
             lane = 0.5 * (tr.width + entry.width) + LANE_SLACK_M
             p0 = entry.points[0]
+            if _beyond(box, float(p0[0]), float(p0[1]), lane):
+                continue  # not in this lane
             first = paths.project(tr.xy, float(p0[0]), float(p0[1]))
             if first[1] > lane or first[0] <= 0.0:
                 continue
@@ -405,23 +449,22 @@ class VelocityManager:
         now: float,
         table: ReservationTable,
         exclude: Collection[str] = (),
+        factor: float = HARD_STOP_FACTOR,
     ) -> float:
         """How far along its path [m] a stopping car may go (issue 12, cause 5): short
-        of the zone (``stop_gap_m`` before it) when braking at up to ``HARD_STOP_FACTOR``
-        times its comfortable deceleration does it (a comfortable stop in the zone
-        blocks the crossing it was stopped for); to its
+        of the zone (its front ``stop_gap_m`` before it, :meth:`zone_edge`) when braking
+        at up to ``factor`` times its comfortable deceleration does it (a comfortable
+        stop in the zone blocks the crossing it was stopped for); to its
         autonomous path's own end when that ends at rest (its planner stops there, e.g.
         behind a car it senses), and to a follow distance behind where every car ahead
         of it in its lane (in the table) ends its path; ``inf`` for no limit."""
         limit = float(tr.s[-1]) if tr.v_ap[-1] <= 0.0 else math.inf
-        span = paths.zone_span(tr.xy, self.zone)
-        if span is not None and span[0] > 0:
-            # short of the zone, when braking up to HARD_STOP_FACTOR x comfortably can
-            edge = float(tr.s[span[0]]) - 0.5 * tr.length - self.config.stop_gap_m
-            if edge > 0.0 and tr.v0 * tr.v0 <= 2.0 * HARD_STOP_FACTOR * tr.decel * edge:
-                limit = min(limit, edge)
+        edge = self.zone_edge(tr)
+        if edge is not None and tr.v0 * tr.v0 <= 2.0 * factor * tr.decel * edge:
+            limit = min(limit, edge)  # short of the zone, braking up to factor x comfortably
         if tr.xy.shape[0] < 2:
             return limit
+        box = _box(tr.xy)
         for other in table:
             entry = table.get(other)
             if other == vehicle or other in exclude or entry is None:
@@ -429,6 +472,11 @@ class VelocityManager:
             if not table.is_live(other, now) or entry.points.shape[0] == 0:
                 continue
             lane = 0.5 * (tr.width + entry.width) + LANE_SLACK_M
+            p0, p1 = entry.points[0], entry.points[-1]
+            if _beyond(box, float(p0[0]), float(p0[1]), lane) or _beyond(
+                box, float(p1[0]), float(p1[1]), lane
+            ):
+                continue  # not in this lane
             first = paths.project(tr.xy, float(entry.points[0, 0]), float(entry.points[0, 1]))
             last = paths.project(tr.xy, float(entry.points[-1, 0]), float(entry.points[-1, 1]))
             if first[1] > lane or last[1] > lane or first[0] <= 0.0:
@@ -469,7 +517,9 @@ class VelocityManager:
         pts = np.column_stack([xy, t])
         hold = _holds(float(xy[-1, 0]), float(xy[-1, 1]), float(t[-1]), tr.t_end, cfg.hold_step_s)
         pts = np.vstack([pts, hold])
-        return SpeedPlan(pts, np.zeros(pts.shape[0]), kind)
+        edge = self.zone_edge(tr)
+        short = edge is not None and s_stop <= edge + 1e-6
+        return SpeedPlan(pts, np.zeros(pts.shape[0]), kind, short=short)
 
     def _fast_caps(self, tr: _Track) -> tuple[FloatArray, int | None]:
         """The car's ``v_max`` (lower in curves) up to the zone exit plus one car length,

@@ -101,15 +101,24 @@ def entry_clear(
     block). Pure; units m, s, m/s.
     """
     ch, sh = math.cos(entry.heading), math.sin(entry.heading)
-    fp = entry.footprint()
+    fp = None
+    # Footprints are rectangles centred on (x, y): two whose circumscribed circles are
+    # apart cannot overlap, so the exact test runs only for cars close to the entry
+    # (issue 14: the exact test on every pair was half of a 200-car run).
+    reach = 0.5 * math.hypot(entry.length, entry.width) + 1e-6
     for o in present:
-        dx = (o.x - entry.x) * ch + (o.y - entry.y) * sh
-        dy = -(o.x - entry.x) * sh + (o.y - entry.y) * ch
+        ox, oy = o.x - entry.x, o.y - entry.y
+        dx = ox * ch + oy * sh
+        dy = -ox * sh + oy * ch
         same_lane = (
             abs(math.remainder(o.heading - entry.heading, math.tau)) <= LANE_MATCH_HEADING_RAD
             and abs(dy) <= LANE_MATCH_LATERAL_M
         )
         if not same_lane:
+            if math.hypot(ox, oy) > reach + 0.5 * math.hypot(o.length, o.width):
+                continue
+            if fp is None:
+                fp = entry.footprint()
             if convex_overlap(fp, o.footprint()):
                 return False
             continue

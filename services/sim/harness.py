@@ -186,25 +186,28 @@ class Simulation:
         # share the result (messages are frozen, their arrays read-only). With N cars
         # this is N decodes per planning tick instead of N² (issue 14).
         decoded: dict[int, tuple[bytes, str, tuple[Message, keyexpr.ParsedKey] | None]] = {}
-        for d in self.channel.due(now):
-            memo = decoded.get(id(d.payload))
-            if memo is None or memo[0] is not d.payload or memo[1] != d.key:
+        agents, rsus, left = self.agents, self.rsus, self.left
+        for _at, _order, receiver, key, payload in self.channel.due(now):
+            memo = decoded.get(id(payload))
+            if memo is None or memo[0] is not payload or memo[1] != key:
                 try:
-                    memo = (d.payload, d.key, (decode(d.payload), keyexpr.parse(d.key)))
+                    memo = (payload, key, (decode(payload), keyexpr.parse(key)))
                 except (DecodeError, ValueError):
-                    memo = (d.payload, d.key, None)
-                decoded[id(d.payload)] = memo
-            if memo[2] is None:
+                    memo = (payload, key, None)
+                decoded[id(payload)] = memo
+            parsed_message = memo[2]
+            if parsed_message is None:
                 self.counters["malformed"] = self.counters.get("malformed", 0) + 1
                 continue
-            message, parsed = memo[2]
-            if d.receiver in self.left:
+            if receiver in left:
                 continue  # gone from the network
-            if d.receiver in self.agents:
-                self.agents[d.receiver].on_message(now, message, parsed.rsu)
-            elif d.receiver in self.rsus:
-                for og in self.rsus[d.receiver].on_message(now, message, parsed.rsu):
-                    self._send_rsu(now, d.receiver, og)
+            message, parsed = parsed_message
+            agent = agents.get(receiver)
+            if agent is not None:
+                agent.on_message(now, message, parsed.rsu)
+            elif receiver in rsus:
+                for og in rsus[receiver].on_message(now, message, parsed.rsu):
+                    self._send_rsu(now, receiver, og)
 
     def _send_rsu(self, now: float, rsu_id: str, og: Outgoing) -> None:
         if og.vehicle is None:

@@ -625,7 +625,8 @@ class MonitorCore:
             missing = ", ".join(sorted(self.expected - self.alive))
             return self._fail_before_start(
                 f"actors not present after {rules.wait_actors_s:g} s: {missing} "
-                "(no liveliness token; are their daemons running and connected?)"
+                "(no liveliness token, or no signed stats report from it; are their "
+                "daemons running and connected, with this run's credentials?)"
             )
         return Actions()
 

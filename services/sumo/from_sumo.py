@@ -10,10 +10,14 @@ Reads the ``.net.xml`` with the standard library (no SUMO needed) and builds:
   connections, so a lane runs through a junction as crosspath's lanes do (the
   blind-corner caution watches the lanes that cross a route); a chain stops before
   it would pass a junction twice. A lane's id is that of its first SUMO lane;
-- **routes**: one per connection of a normal lane at a junction (turnarounds left
-  out): the incoming lane, SUMO's internal lane(s) of the connection (``via``,
-  followed through internal junctions) and the outgoing lane; id
-  ``<from edge>-<to edge>`` (lane indices appended when an edge pair has several);
+- **routes**: from every entry lane (a normal lane no connection leads to) through
+  one or several junctions to an exit lane (one with no connection onward), along
+  SUMO's connections (turnarounds left out) and their internal lane(s) (``via``,
+  followed through internal junctions), never through a junction twice; id
+  ``<first edge>-<last edge>`` (lane ids when an edge pair has several routes). At most
+  ``max_routes``, taken round robin over the entries (each entry's routes through more
+  junctions first), so a cap keeps every entry. A closed network (no entry lane) gets
+  one route per connection;
 - **cars**: one ``[[vehicles]]`` per route, started ``stagger_s`` apart in route
   order, or with ``vehicles_per_hour`` one ``[[flows]]`` per route for ``flow_end_s``;
 - **RSUs**: one per intersection at its centre (coverage ``rsu_coverage_m``), unless
@@ -45,6 +49,8 @@ __all__ = ["SumoNetError", "SumoNetwork", "read_net", "scenario_from_net", "writ
 Point = tuple[float, float]
 _ID_BAD = re.compile(r"[^A-Za-z0-9_-]")
 _MIN_STEP_M = 0.01
+_MAX_PATHS_PER_ENTRY = 1000
+"""Routes enumerated from one entry lane at most (a grid has very many)."""
 
 
 class SumoNetError(ValueError):
@@ -212,6 +218,59 @@ def _lane_chains(net: SumoNetwork) -> list[list[str]]:
     return chains
 
 
+def _route_paths(net: SumoNetwork) -> list[list[Connection]]:
+    """Every route as its connections: from each entry lane (a normal lane no connection
+    leads to) through junctions to an exit lane (one with no connection onward), never
+    through a junction twice; per entry, routes through more junctions first. Without
+    entry lanes (a closed network), one route per connection."""
+    out_of: dict[str, list[Connection]] = {}
+    into: set[str] = set()
+    for c in net.connections:
+        if c.direction in ("t", "T"):
+            continue
+        out_of.setdefault(c.from_lane, []).append(c)
+        into.add(c.to_lane)
+    entries = [lid for lid in out_of if lid not in into]
+    if not entries:
+        return [[c] for conns in out_of.values() for c in conns]
+    per_entry: list[list[list[Connection]]] = []
+    for entry in entries:
+        found: list[list[Connection]] = []
+        stack: list[tuple[str, list[Connection], frozenset[str]]] = [(entry, [], frozenset())]
+        while stack and len(found) < _MAX_PATHS_PER_ENTRY:
+            lane, path, seen = stack.pop()
+            junction = net.edge_to.get(net.lane_edge[lane], "")
+            onward = out_of.get(lane, [])
+            if not onward:
+                if path:
+                    found.append(path)
+                continue
+            if junction in seen:
+                continue  # it would pass that junction twice
+            for c in reversed(onward):
+                stack.append((c.to_lane, [*path, c], seen | {junction}))
+        found.sort(key=len, reverse=True)
+        per_entry.append(found)
+    # round robin over the entries, so a cap keeps routes from every entry
+    return [p for group in itertools.zip_longest(*per_entry) for p in group if p is not None]
+
+
+def _routes(net: SumoNetwork, max_routes: int) -> list[tuple[str, list[str]]]:
+    """(raw id, SUMO lanes in order) of the first ``max_routes`` routes of
+    :func:`_route_paths`; raw id ``<first edge>-<last edge>`` (lane ids when an edge pair
+    has several routes)."""
+    paths = _route_paths(net)[:max_routes]
+    ends = [(net.lane_edge[p[0].from_lane], net.lane_edge[p[-1].to_lane]) for p in paths]
+    out: list[tuple[str, list[str]]] = []
+    for path, (fe, te) in zip(paths, ends, strict=True):
+        lanes = [path[0].from_lane]
+        for c in path:
+            lanes += [*net.via_chain(c.via), c.to_lane]
+        unique = ends.count((fe, te)) == 1
+        out.append((f"{fe}-{te}" if unique else f"{path[0].from_lane}-{path[-1].to_lane}", lanes))
+    return out
+
+
 def scenario_from_net(
     path: Path,
     *,
@@ -222,11 +281,14 @@ def scenario_from_net(
     stop_line_offset_m: float = 1.0,
     rsus: bool = True,
     rsu_coverage_m: float = 150.0,
+    max_routes: int = 200,
 ) -> Scenario:
     """The crosspath scenario of the network at ``path`` (see the module docstring),
     validated; :class:`SumoNetError` or ``ScenarioError`` if it cannot be built."""
     if not (math.isfinite(stagger_s) and stagger_s >= 0):
         raise ValueError(f"stagger_s must be >= 0, got {stagger_s!r}")
+    if isinstance(max_routes, bool) or not isinstance(max_routes, int) or max_routes < 1:
+        raise ValueError(f"max_routes must be an int >= 1, got {max_routes!r}")
     net = read_net(path)
     ids = _Ids()
     doc: dict[str, Any] = {}
@@ -259,17 +321,8 @@ def scenario_from_net(
     doc["intersections"] = intersections
     routes = []
     longest = 0.0
-    pair_count: dict[tuple[str, str], int] = {}
-    for c in net.connections:
-        key = (net.lane_edge[c.from_lane], net.lane_edge[c.to_lane])
-        pair_count[key] = pair_count.get(key, 0) + 1
-    for c in net.connections:
-        if c.direction in ("t", "T"):
-            continue
-        fe, te = net.lane_edge[c.from_lane], net.lane_edge[c.to_lane]
-        raw = f"{fe}-{te}" if pair_count[(fe, te)] == 1 else f"{c.from_lane}-{c.to_lane}"
-        shapes = [net.lanes[c.from_lane], *(net.lanes[v] for v in net.via_chain(c.via))]
-        pts = _join([*shapes, net.lanes[c.to_lane]])
+    for raw, lane_path in _routes(net, max_routes):
+        pts = _join([net.lanes[lid] for lid in lane_path])
         if len(pts) >= 2:
             routes.append({"id": ids(raw), "points": [list(p) for p in pts]})
             longest = max(longest, sum(math.dist(a, b) for a, b in itertools.pairwise(pts)))

@@ -24,6 +24,7 @@ Decisions where the issue is silent:
 
 from __future__ import annotations
 
+import itertools
 import os
 import shutil
 import subprocess
@@ -40,6 +41,7 @@ __all__ = [
     "Control",
     "SumoNotFound",
     "VehicleTypeSpec",
+    "build_corridor",
     "build_network",
     "sumo_binary",
     "sumo_home",
@@ -157,6 +159,12 @@ def build_network(directory: Path, control: Control, approach_m: float = APPROAC
         raise ValueError(f"approach_m must be > {3 * LANE_WIDTH_M} m, got {approach_m!r}")
     nod.write_text(_nodes_xml(control, approach_m))
     edg.write_text(_edges_xml())
+    _netconvert(nod, edg, net)
+    return net
+
+
+def _netconvert(nod: Path, edg: Path, net: Path) -> Path:
+    """Run netconvert on plain node and edge files (no turnarounds, coordinates kept)."""
     cmd = [
         str(sumo_binary("netconvert")),
         "--node-files",
@@ -176,6 +184,51 @@ def build_network(directory: Path, control: Control, approach_m: float = APPROAC
     if proc.returncode != 0 or not net.is_file():
         raise RuntimeError(f"netconvert failed ({proc.returncode}): {proc.stderr.strip()}")
     return net
+
+
+def build_corridor(
+    directory: Path,
+    junctions: int = 3,
+    spacing_m: float = 100.0,
+    arm_m: float = 40.0,
+    control: Control = Control.PRIORITY,
+) -> Path:
+    """Write ``corridor-<n>.net.xml`` in ``directory``: a west-east main road (priority 2)
+    through ``junctions`` 4-way junctions ``j0``, ``j1``... ``spacing_m`` apart, each with a
+    north and a south arm (priority 1) of ``arm_m``; the main road runs ``arm_m`` beyond
+    the first and last junction. One 3.5 m lane per direction, 13.89 m/s; node ids ``w``,
+    ``e``, ``n<k>``, ``s<k>``, edge ids ``<from node>_<to node>``. Its path; raises as
+    :func:`build_network`."""
+    if not 1 <= junctions <= 50:
+        raise ValueError(f"junctions must be within 1..50, got {junctions!r}")
+    if not (spacing_m > 3 * LANE_WIDTH_M and arm_m > 3 * LANE_WIDTH_M):
+        raise ValueError(f"spacing_m and arm_m must be > {3 * LANE_WIDTH_M} m")
+    directory.mkdir(parents=True, exist_ok=True)
+    stem = directory / f"corridor-{junctions}"
+    xs = [k * spacing_m for k in range(junctions)]
+    nodes = [(f"j{k}", x, 0.0, control.value) for k, x in enumerate(xs)]
+    nodes += [("w", -arm_m, 0.0, "dead_end"), ("e", xs[-1] + arm_m, 0.0, "dead_end")]
+    for k, x in enumerate(xs):
+        nodes += [(f"n{k}", x, arm_m, "dead_end"), (f"s{k}", x, -arm_m, "dead_end")]
+    extra = ' tlType="actuated"' if control is Control.TRAFFIC_LIGHT else ""
+    nod_lines = ["<nodes>"] + [
+        f'  <node id="{i}" x="{x}" y="{y}" type="{t}"'
+        + (f' radius="{CORNER_RADIUS_M}"{extra}' if i.startswith("j") else "")
+        + "/>"
+        for i, x, y, t in nodes
+    ]
+    main = ["w", *(f"j{k}" for k in range(junctions)), "e"]
+    pairs = [(a, b, 2) for a, b in itertools.pairwise(main)]
+    pairs += [(f"{arm}{k}", f"j{k}", 1) for k in range(junctions) for arm in "ns"]
+    edg_lines = ["<edges>"]
+    for a, b, prio in pairs:
+        common = f'numLanes="1" speed="{SPEED_MPS}" width="{LANE_WIDTH_M}" priority="{prio}"'
+        edg_lines.append(f'  <edge id="{a}_{b}" from="{a}" to="{b}" {common}/>')
+        edg_lines.append(f'  <edge id="{b}_{a}" from="{b}" to="{a}" {common}/>')
+    nod, edg = stem.with_suffix(".nod.xml"), stem.with_suffix(".edg.xml")
+    nod.write_text("\n".join([*nod_lines, "</nodes>", ""]))
+    edg.write_text("\n".join([*edg_lines, "</edges>", ""]))
+    return _netconvert(nod, edg, stem.with_suffix(".net.xml"))
 
 
 @dataclass(frozen=True, slots=True)

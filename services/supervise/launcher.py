@@ -121,6 +121,10 @@ default. A 40-car run holds thousands of links on two busy cores, and with
 :data:`LEASE_MS` an idle car's links were seen to expire (its token lost: the run
 failed); a crashed host is still seen within this."""
 
+WAIT_ACTORS_PER_NODE_S: Final = 1.5
+"""The monitor waits for the actors this long per node (at least 30 s) [wall s]: a 40-car
+run on two loaded cores was seen to need more than 30 s to bring every node up."""
+
 SWEEP_GRACE_S: Final = 2.0
 """Seconds a swept leftover process has to exit after SIGTERM before it is killed."""
 
@@ -151,10 +155,11 @@ class Endpoints:
     tcp: str
 
     def __post_init__(self) -> None:
-        for proto, locator in (("udp", self.udp), ("tcp", self.tcp)):
+        # the network lab's TLS mode: ``quic/...?rel=0`` (datagrams) and ``tls/...``
+        for protos, locator in ((("udp", "quic"), self.udp), (("tcp", "tls"), self.tcp)):
             head, sep, rest = locator.partition("/")
-            if head != proto or not sep or ":" not in rest:
-                raise ValueError(f"expected {proto}/<address>:<port>, got {locator!r}")
+            if head not in protos or not sep or ":" not in rest:
+                raise ValueError(f"expected {protos[0]}/<address>:<port>, got {locator!r}")
 
     @property
     def locators(self) -> list[str]:
@@ -225,6 +230,8 @@ def actor_commands(
                 argv += ["--max-sim-s", repr(float(max_sim_s))]
             if start_delay_s is not None:
                 argv += ["--start-delay", repr(float(start_delay_s))]
+            # many cars open their Zenoh sessions one after another on a busy machine
+            argv += ["--wait-actors", repr(max(30.0, WAIT_ACTORS_PER_NODE_S * len(order)))]
             if trace:
                 argv += ["--trace"]
         elif node in rsus:

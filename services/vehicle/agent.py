@@ -11,6 +11,12 @@ daemon) passes ``now`` and inputs in and sends what comes out:
   ``ap_rule``, on change: ``services.vehicle.fp_rule``) and the next deadline;
 - ``command(body)`` at the physics rate (20 Hz): the acceleration command that
   tracks the last planned speed profile (the controller).
+
+Several RSUs: the car is coordinated by at most one RSU at a time, its owner (the RSU
+of the next intersection on its route, while the car is in its coverage); every other
+RSU's commands and paths are ignored until the owner lets the car go, and the car hands
+itself over as it leaves the owner's zone. The rule is in
+``services.vehicle.coordination`` ("Several RSUs").
 """
 
 from __future__ import annotations
@@ -36,7 +42,15 @@ from protocol.messages import (
 )
 from services.model.kinematics import BodyState, Limits, TruthState
 from services.model.scenario import Scenario, VehicleParams
-from services.vehicle.coordination import VehicleEvent, next_mode
+from services.vehicle.coordination import (
+    RsuReach,
+    VehicleEvent,
+    Where,
+    next_mode,
+    owner_lapsed,
+    owner_refusal,
+    owner_zone_exit,
+)
 from services.vehicle.fp_rule import ChangeRule, change_rule
 from services.vehicle.future_path import future_path_points
 from services.vehicle.planner import AutonomousPlanner, Coordination, Plan, Reason
@@ -84,6 +98,9 @@ class TickResult:
 class _Coordinated:
     mode: Mode = Mode.AUTO
     rsu: str | None = None
+    """The owner: the RSU coordinating the car (None exactly in AUTO)."""
+    exit_s: float = np.inf
+    """Arc length [m] at which the car leaves the owner's zone (the handover)."""
     since: float = 0.0
     last_path_at: float = -np.inf
     target_s: FloatArray | None = None
@@ -112,6 +129,10 @@ class VehicleAgent:
     """When the autonomous path is sent while coordinated; None: every tick."""
     cp_timeout_s: float = field(init=False, default=0.0)
     """Back to AUTO after this long without a coordinated path [s]."""
+    where: Where | None = field(init=False, default=None)
+    """The car's place at its last planning step (None before the first)."""
+    reach: dict[str, RsuReach] = field(init=False)
+    """The scenario's RSUs: the intersection each serves and its coverage disc."""
 
     def __post_init__(self) -> None:
         p = self.scenario.params
@@ -131,6 +152,10 @@ class VehicleAgent:
         self.future_paths = {}
         self.rsus = {}
         self.counters = {}
+        self.reach = {}
+        for r in self.scenario.rsus:
+            cx, cy = self.scenario.intersection(r.intersection).center
+            self.reach[r.id] = RsuReach(r.intersection, float(cx), float(cy), r.coverage_m)
         self.fp_rule = change_rule(self.spec.params)
         self.fp_hold_s = self.scenario.fp_hold_s(self.spec.params.fp_stale_s)
         self.ap_rule = change_rule(self.spec.params, autonomous=True)
@@ -171,6 +196,10 @@ class VehicleAgent:
             if message.vehicle != me:
                 self._count("cmd_not_mine")
                 return
+            why = self._refusal(rsu or message.header.sender, message.command)
+            if why is not None:
+                self._count(f"cmd_{why}")
+                return
             if message.command is Command.TERMINATE:
                 event = VehicleEvent.TERMINATE
             elif message.mode is Mode.C_SLOW:
@@ -187,6 +216,10 @@ class VehicleAgent:
             if c.mode is Mode.AUTO:
                 self._count("cp_ignored")
                 return
+            why = self._refusal(rsu or message.header.sender, None)
+            if why is not None:
+                self._count(f"cp_{why}")
+                return
             if message.mode is not c.mode and message.mode in (Mode.C_SLOW, Mode.C_FAST):
                 # the path implies its mode: a lost initiation is recovered from it
                 self._apply(
@@ -200,6 +233,29 @@ class VehicleAgent:
             return
         self._count("ignored")
 
+    def _reach(self, rsu: str) -> RsuReach | None:
+        """The RSU's intersection and coverage: the scenario's, else its last beacon's."""
+        known = self.reach.get(rsu)
+        if known is not None:
+            return known
+        heard = self.rsus.get(rsu)
+        if heard is None:
+            return None
+        b = heard[0]
+        return RsuReach(b.intersection, b.x, b.y, b.radius)
+
+    def _refusal(self, sender: str, command: Command | None) -> str | None:
+        """Why the car must not obey this RSU's command (``command``) or coordinated path
+        (None): ``services.vehicle.coordination.owner_refusal``."""
+        return owner_refusal(
+            sender,
+            self.coordination.rsu,
+            self._reach(sender),
+            self.planner.crossings,
+            self.where,
+            terminate=command is Command.TERMINATE,
+        )
+
     def _apply(self, now: float, event: VehicleEvent, rsu: str | None) -> None:
         c = self.coordination
         new = next_mode(c.mode, event)
@@ -210,9 +266,19 @@ class VehicleAgent:
                 c.since = now
                 c.last_path_at = now  # the timeout counts from the initiation
                 c.target_s = c.target_v = None
+                # the new owner (owner_refusal let only the next intersection's RSU here)
+                c.rsu = rsu
+                reach = None if rsu is None else self._reach(rsu)
+                s = self.where.s if self.where is not None else 0.0
+                c.exit_s = (
+                    np.inf
+                    if reach is None
+                    else owner_zone_exit(self.planner.crossings, reach.intersection, s)
+                )
             c.mode = new
-            c.rsu = rsu if new is not Mode.AUTO else None
             if new is Mode.AUTO:
+                c.rsu = None
+                c.exit_s = np.inf
                 c.target_s = c.target_v = None
 
     def _follow(self, now: float, path: CoordinatedPath) -> None:
@@ -232,6 +298,14 @@ class VehicleAgent:
         """One planning step (10 Hz)."""
         p = self.scenario.params
         c = self.coordination
+        self.where = Where(ego.s, ego.x, ego.y)
+        if c.mode is not Mode.AUTO and c.rsu is not None:
+            reach = self._reach(c.rsu)
+            lapsed = "owner_unknown" if reach is None else owner_lapsed(reach, c.exit_s, self.where)
+            if lapsed is not None:
+                log.info("%s: handed over by %s (%s)", self.spec.vehicle_id, c.rsu, lapsed)
+                self._count(lapsed)
+                self._apply(now, VehicleEvent.HANDOVER, None)
         if c.mode is not Mode.AUTO and now - c.last_path_at > self.cp_timeout_s:
             log.info(
                 "%s: no coordinated path for %.2f s, back to AUTO",

@@ -449,6 +449,7 @@ class AutonomousPlanner:
         earliest = self._earliest_interval(now, ego.s, ego.speed, crossing, self.length)
         zone = self._zones[crossing.intersection]
         mine = self._own_arrival(now, ego, crossing)
+        still = ego.speed <= self.params.creep_mps / 2.0
         out: list[str] = []
         seen: set[str] = set()
         for fp_id, fp in future_paths.items():
@@ -473,7 +474,7 @@ class AutonomousPlanner:
                 own_iv, other_iv = earliest, self._fp_earliest(now, fp, zone, crossing)
             overlap = own_iv.overlaps(other_iv, self.headway_s)
             moving = fp.speed > self.params.creep_mps / 2.0
-            if self._decide(crossing, fp_id, overlap, arrival, mine, moving):
+            if self._decide(crossing, fp_id, overlap, arrival, mine, moving, still):
                 out.append(fp_id)
         for other in sensed:
             if other.id in seen:
@@ -484,7 +485,7 @@ class AutonomousPlanner:
             sensed_iv, arrival = found
             overlap = earliest.overlaps(sensed_iv, self.headway_s)
             moving = other.speed > self.params.creep_mps / 2.0
-            if self._decide(crossing, other.id, overlap, arrival, mine, moving):
+            if self._decide(crossing, other.id, overlap, arrival, mine, moving, still):
                 out.append(other.id)
         return out
 
@@ -496,22 +497,28 @@ class AutonomousPlanner:
         other: _Arrival,
         mine: _Arrival,
         moving: bool,
+        still: bool = False,
     ) -> bool:
         """Yield to this car? The verdict is taken when the two first conflict and then
         kept (commitment), both ways, while the other stays a conflict here: estimated
         arrivals shift as both slow for the blind corner, and a car that swapped the
         order half-way would stop twice, or go together with the other. Both cars take
         it from the same facts (``_goes_first``), so they agree. Exceptions: a committed
-        car goes first (and the verdict follows); a kept yield to a car that has stopped
-        short of the zone is re-judged, so two cars never wait for each other (both
-        then judge the same standing facts and agree)."""
+        car goes first (and the verdict follows); while the car that holds the right of
+        way stands still short of the zone (``moving`` false for the other car's, ``still``
+        true for this car's own speed), the verdict is re-judged, so two cars never wait
+        for each other. Both cars re-judge on the same fact (the holder's speed, which
+        both see) and then judge the same standing facts, so they agree: a car that kept
+        its right of way while it stood (waiting for a third car) and the car that
+        re-judged its yield meanwhile went together into the zone (issue 12,
+        ``test_standalone_crossing_between_two_opposite_cars``)."""
         key = (crossing.intersection, other_id)
         kept = self._order.get(key)
         if kept is None and not overlap:
             return False  # no conflict yet: no verdict
         if other.committed != mine.committed:
             first = other.committed
-        elif kept is None or (kept and not moving):
+        elif kept is None or (kept and not moving) or (not kept and still):
             first = self._goes_first(other, mine, other_id)
         else:
             first = kept

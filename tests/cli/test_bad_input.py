@@ -187,15 +187,16 @@ FLOWS = REPO / "scenarios" / "four-way-flows.toml"
 @pytest.mark.parametrize(
     "argv",
     [
-        ["lab", "run", str(FLOWS), "--mode", "rsu"],
         ["rsu", "--scenario", str(FLOWS), "--id", "rsu1"],
+        ["vehicle", "--scenario", str(FLOWS), "--id", "we-0"],
     ],
-    ids=["lab-run", "rsu-daemon"],
+    ids=["rsu-daemon", "vehicle-daemon"],
 )
 def test_daemon_harnesses_refuse_flows_in_one_line(place: Path, argv: list[str]) -> None:
-    """A daemon and the lab refuse a flow scenario before starting anything (issue 12:
-    `crosspath up` expands flows for its seed, tests/supervise/test_up_flows.py; a daemon
-    loads that plain file), instead of running with no cars."""
+    """A daemon refuses a flow scenario before starting anything (issue 12: `crosspath up`
+    and `crosspath lab run` expand flows for their seed, tests/supervise/test_up_flows.py
+    and tests/supervise/lab/test_lab_tls.py; a daemon loads that plain file), instead of
+    running with no cars."""
     before = _snapshot(place)
     proc = crosspath(place / "cwd", *argv)
     assert proc.returncode == 2, proc.stdout + proc.stderr

@@ -15,6 +15,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from protocol import (
+    AutonomousPath,
     CoordinatedPath,
     DecodeError,
     EncodeError,
@@ -27,12 +28,13 @@ from protocol import (
 from protocol.messages import FloatArray
 from services.bench.codec import sample_messages
 from tests.protocol.test_properties import path_points, path_times_us
+from tests.protocol.vectors import assert_same
 
 
 def reference_read_points(
     buf: bytes, off: int, kind: Kind, n: int, widths: int, ncols: int, time_us: int
 ) -> tuple[FloatArray, FloatArray | None, int]:
-    """``codec._read_points`` as it was before issue 14 (the reference)."""
+    """``codec._read_points`` as it was before issue 14 (the reference), with format 3 times."""
     if n > codec._MAX_POINTS[kind]:
         raise DecodeError("too many points")
     plan = codec._delta_plan(n, widths, ncols)
@@ -46,7 +48,7 @@ def reference_read_points(
             raise DecodeError("first point out of range")
     rows = np.zeros((n, ncols))
     start = list(first)
-    start[codec._T_COLUMN] += time_us / 1000.0
+    start[codec._T_COLUMN] += time_us // 1000
     rows[0] = start
     count = n - 1
     for c, dtype, size in plan:
@@ -168,3 +170,29 @@ def test_decoded_message_equals_reference_for_real_paths() -> None:
         m = decode(data)
         assert isinstance(m, FuturePath | CoordinatedPath)
         assert m.points.tobytes() == ref[0].tobytes()
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    st.sampled_from(datagrams()),
+    st.lists(st.tuples(st.integers(0, 800), st.integers(0, 255)), max_size=4),
+)
+def test_fast_message_paths_equal_the_general_ones(
+    data: bytes, edits: list[tuple[int, int]]
+) -> None:
+    """``decode``'s and ``encode``'s one-struct vehicle path shortcuts change nothing."""
+    buf = bytearray(data)
+    for at, value in edits:
+        if at < len(buf):
+            buf[at] = value
+    raw = bytes(buf)
+    fast = outcome(codec._decode_vehicle_path_fast, raw)
+    general = outcome(codec._decode, raw)
+    if fast is None or (isinstance(fast, tuple) and isinstance(general, tuple)):
+        return  # not taken, or refused by both
+    assert isinstance(fast, FuturePath | AutonomousPath) and type(fast) is type(general)
+    assert_same(general, fast)
+    assert fast.points.flags.owndata and not fast.points.flags.writeable
+    again = codec._encode_vehicle_path_fast(fast.kind, fast)
+    assert again is None or again == b"".join(codec._encode_vehicle_path(fast.kind, fast))
+    assert encode(fast) == encode(general)

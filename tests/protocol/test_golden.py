@@ -93,7 +93,8 @@ def _ref_points(r: _Reader, time_us: int, ncols: int) -> tuple[list[list[float]]
         columns.append([r.take(fmt) if fmt else 0 for _ in range(n - 1)])
     for k in range(n - 1):
         rows.append([rows[-1][c] + columns[c][k] for c in range(ncols)])
-    points = [[row[0] / 100, row[1] / 100, (time_us + 1000 * row[2]) / 1e6] for row in rows]
+    base_ms = time_us // 1000  # T counts whole ms from floor(time_us / 1000)
+    points = [[row[0] / 100, row[1] / 100, (base_ms + row[2]) / 1000] for row in rows]
     speeds = [row[3] / 100 for row in rows] if ncols == 4 else []
     return points, speeds
 
@@ -103,7 +104,7 @@ def reference_decode(data: bytes) -> dict[str, Any]:
     r = _Reader(data)
     out: dict[str, Any] = {}
     assert r.take("B") == 0xCB
-    assert r.take("B") == 2
+    assert r.take("B") == 3
     kind = r.take("B")
     flags = r.take("B")
     out["seq"] = r.take("I")

@@ -1,7 +1,7 @@
 """Golden test vectors: messages and their exact datagrams (also listed in ``protocol/SPEC.md``).
 
 Every value is exactly representable on the wire (whole centimetres, whole
-milliseconds after the header time, whole cm/s), so decoding a vector gives the
+milliseconds of the run's time base, whole cm/s), so decoding a vector gives the
 message back exactly, not just within the resolution.
 """
 
@@ -54,12 +54,13 @@ VECTORS: dict[str, tuple[Message, str]] = {
             VehicleLimits(13.89, 1.5, 2.0, 2.0),
         ),
         (
-            "cb02010001000000a85ebc0000000000056361722d61fef7ffff51ffffff7e04"
+            "cb03010001000000a85ebc0000000000056361722d61fef7ffff51ffffff7e04"
             "0000c201b4006d050f141400040011fef7ffff51ffffff000000007373736464"
             "64"
         ),
     ),
-    # an autonomous path with 2-byte deltas and a header time that is not whole milliseconds,
+    # an autonomous path with 2-byte deltas and a header time that is not whole milliseconds
+    # (point times are: T_0 counts from floor(time_us / 1000) = 100000 ms),
     # from a truck (8 m/s, 1.0 m/s², 1.5 m/s² braking, 1.2 m/s² lateral)
     "ap-wide": (
         AutonomousPath(
@@ -71,11 +72,11 @@ VECTORS: dict[str, tuple[Message, str]] = {
             4.5,
             1.8,
             Mode.C_SLOW,
-            _a((1.75, -30.0, 100.00025), (2.0, -26.0, 100.30025), (1.5, -22.0, 100.60025)),
+            _a((1.75, -30.0, 100.0), (2.0, -26.0, 100.3), (1.5, -22.0, 100.6)),
             VehicleLimits(8.0, 1.0, 1.5, 1.2),
         ),
         (
-            "cb02020000286beefae1f50500000000056361722d62af00000048f4ffff6d05"
+            "cb03020000286beefae1f50500000000056361722d62af00000048f4ffff6d05"
             "5c3dc201b40020030a0f0c01030029af00000048f4ffff0000000019ce900190"
             "012c012c01"
         ),
@@ -90,21 +91,21 @@ VECTORS: dict[str, tuple[Message, str]] = {
             _a(10.0, 9.0, 8.0),
         ),
         (
-            "cb0203002a00000050a4f60500000000057273752d31056361722d6201030054"
+            "cb0303002a00000050a4f60500000000057273752d31056361722d6201030054"
             "af00000048f4ffff00000000e803645a64649c9c"
         ),
     ),
     "mc-initiate": (
         ModeCommand(Header("rsu-1", 43, 100_050_000), "car-a", Command.INITIATE, Mode.C_FAST),
-        ("cb0204002b00000050a4f60500000000057273752d31056361722d610102"),
+        ("cb0304002b00000050a4f60500000000057273752d31056361722d610102"),
     ),
     "mc-terminate": (
         ModeCommand(Header("rsu-1", 44, 120_000_000), "car-b", Command.TERMINATE, Mode.AUTO),
-        ("cb0204002c000000000e270700000000057273752d31056361722d620200"),
+        ("cb0304002c000000000e270700000000057273752d31056361722d620200"),
     ),
     "beacon": (
         RsuBeacon(Header("rsu-1", 7, 5_000_000), "x-0", 5.0, -5.0, 150.0),
-        ("cb02050007000000404b4c0000000000057273752d3103782d30f40100000cfeffff983a0000"),
+        ("cb03050007000000404b4c0000000000057273752d3103782d30f40100000cfeffff983a0000"),
     ),
     # one point, negative header time, an authentication trailer (scheme 1, 4 bytes), and
     # no declared limits (five zero bytes)
@@ -121,7 +122,7 @@ VECTORS: dict[str, tuple[Message, str]] = {
             _a((0.0, 0.0, -1.5)),
         ),
         (
-            "cb02010100000000a01ce9ffffffffff056361725f6300000000000000000000"
+            "cb03010100000000a01ce9ffffffffff056361725f6300000000000000000000"
             "4985b004ff000000000000020100000000000000000000000000000104deadbe"
             "ef"
         ),

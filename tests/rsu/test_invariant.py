@@ -55,6 +55,7 @@ P = SCENARIO.params
 DT = 0.1
 LENGTH, WIDTH = 4.5, 1.8
 GAP = follow_distance(LENGTH, LENGTH, 1.0) + 0.5  # the driver's own car following [m]
+_DV_S = 0.02  # a car's speed is its path's over the last this of the step [s]
 
 
 @dataclass
@@ -190,14 +191,14 @@ def _drive(policy: Policy, starts: list[tuple[str, float, float]], seconds: floa
             if car.mode != Mode.AUTO and car.coord is not None and car.coord_s is not None:
                 t = car.coord[:, 2]
                 s_new = float(np.interp(now + DT, t, car.coord_s))
-                car.v = max(0.0, (s_new - car.s) / DT)
+                s_before = float(np.interp(now + DT - _DV_S, t, car.coord_s))
+                car.v = max(0.0, (s_new - s_before) / _DV_S)  # its speed at the step's end
                 car.s = max(car.s, s_new)
             else:
                 own = car.own_profile(now, _ahead(car, live), caution=True)
-                s_new = float(
-                    np.interp(now + DT, own.t[np.isfinite(own.t)], own.s[np.isfinite(own.t)])
-                )
-                car.v = max(0.0, (s_new - car.s) / DT)
+                fin = np.isfinite(own.t)
+                s_new = float(np.interp(now + DT, own.t[fin], own.s[fin]))
+                car.v = max(0.0, float(np.interp(now + DT, own.t[fin], own.v[fin])))
                 car.s = max(car.s, s_new)
         # 2. a car following its path never drives into the car ahead
         for car in live:

@@ -281,8 +281,9 @@ async def test_a_forged_stop_is_refused_and_counted(keys: Path) -> None:
 
 
 class FakeRsu:
-    """A liveliness token for ``rsu1`` and stats acknowledging every run, signed by a
-    key of another authority when ``forger`` is given, else unsigned."""
+    """A liveliness token for ``rsu1`` and its stats every 0.2 s (a "hello" before a run,
+    then acknowledging every run), signed by a key of another authority when ``forger``
+    is given, else unsigned."""
 
     def __init__(self, forger: PlumbingAuth | None) -> None:
         self.forger = forger
@@ -295,13 +296,13 @@ class FakeRsu:
         listen_for_runs(peer, self.runs)
         peer.declare_liveliness(f"{keyexpr.DEFAULT_PREFIX}/sim/alive/rsu1")
         while not done.is_set():
-            if self.runs:
-                report = StatsReport("rsu1", self.runs[-1], False, {"streams": {}})
-                data = encode_stats(report)
-                if self.forger is not None:
-                    data = self.forger.seal(data)
-                peer.publish(keyexpr.stats("rsu1"), data, RELIABLE_QOS)
-                self.stats_sent += 1
+            run_id = self.runs[-1] if self.runs else None
+            report = StatsReport("rsu1", run_id, False, {"streams": {}})
+            data = encode_stats(report)
+            if self.forger is not None:
+                data = self.forger.seal(data)
+            peer.publish(keyexpr.stats("rsu1"), data, RELIABLE_QOS)
+            self.stats_sent += 1
             await asyncio.sleep(0.2)
         peer.close()
 
@@ -321,9 +322,13 @@ async def test_forged_liveliness_and_stats_cannot_fake_an_rsu_signed(
     scenario = load_scenario(PAPER)
     other = Authority.open(make_run_authority(tmp_path / "other", scenario))
     fake = FakeRsu(PlumbingAuth(other.credentials("rsu1")))
-    monitor, _ = await run(scenario, keys, fake, rsu=False, ack_timeout_s=1.0)
-    assert fake.stats_sent > 0 and fake.runs
+    monitor, _ = await run(scenario, keys, fake, rsu=False, wait_actors_s=2.0)
+    assert fake.stats_sent > 0
+    # the token alone never counts: no run starts, the RSU is reported missing
+    assert not fake.runs and monitor.start is None and monitor.result is None
     assert monitor.exit_code == 1 and monitor.failure is not None
-    assert "rsu1" in monitor.failure
+    assert "not present" in monitor.failure and "rsu1" in monitor.failure
+    assert "A" not in monitor.failure and "B" not in monitor.failure  # the cars said hello
+    assert "rsu1" in monitor.tokens and "rsu1" not in monitor.heard
     auth = monitor.shell.plumbing_auth
     assert auth is not None and auth.refused.get("bad_certificate", 0) >= 1

@@ -60,6 +60,7 @@ def test_initiation_then_autonomous_paths_then_termination(paper: Scenario) -> N
 
 def test_no_coordinated_path_for_0_3_s_falls_back(paper: Scenario) -> None:
     agent = vehicle_agent(paper, "A", v2x=True)
+    agent.tick(0.95, truth(paper, "A", 119.3, 13.0, 0.95), [])
     agent.on_message(1.0, command("A", Command.INITIATE, Mode.C_SLOW, 1.0), "rsu1")
     agent.tick(1.1, truth(paper, "A", 120.0, 13.0, 1.1), [])
     agent.tick(1.25, truth(paper, "A", 122.0, 13.0, 1.25), [])
@@ -71,6 +72,7 @@ def test_no_coordinated_path_for_0_3_s_falls_back(paper: Scenario) -> None:
 
 def test_coordinated_speed_zero_brakes_comfortably(paper: Scenario) -> None:
     agent = vehicle_agent(paper, "A", v2x=True)
+    agent.tick(0.0, truth(paper, "A", 120.0, 12.0, 0.0), [])
     agent.on_message(0.0, command("A", Command.INITIATE, Mode.C_SLOW, 0.0), "rsu1")
     xs = np.arange(-80.0, 40.0, 1.0)
     pts = np.column_stack([xs, np.full_like(xs, -1.75), np.linspace(0.0, 10.0, xs.size)])

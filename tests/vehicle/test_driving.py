@@ -179,16 +179,16 @@ def test_knowing_the_others_plans_never_makes_cars_slower(
     assert fp.mean_passing_time_s <= alone.mean_passing_time_s + FP_TOLERANCE_S
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="issue 12, open: a northbound stand-alone car between an eastbound and a"
-    " westbound car 1.5 s apart (each seen late at a blind corner) collides; found by"
-    " the property above",
-)
 def test_standalone_crossing_between_two_opposite_cars() -> None:
+    # issue 12: a northbound car between an eastbound and a westbound car 1.5 s apart,
+    # each seen late at a blind corner. B kept its right of way over C while it stood
+    # waiting for A; C meanwhile re-judged its yield (a tie, C from B's right) and both
+    # went (collision). Now both re-judge while the holder of the right of way stands.
     sc = scenario([("A", "east", 0.0), ("B", "north", 1.0), ("C", "west", 2.5)])
     alone = simulate(sc, mode="standalone", max_sim_s=MAX_SIM_S)
     assert alone.collisions == 0
+    assert alone.min_pet_s is not None and alone.min_pet_s >= sc.params.headway_s
+    assert all(v.passing_time_s is not None for v in alone.vehicles.values())
 
 
 @pytest.mark.parametrize("mode", ["standalone", "fp-only", "rsu"])

@@ -88,9 +88,12 @@ from pathlib import Path
 from types import FrameType
 from typing import IO, Any, Final
 
+from services.edge.tls import make_tls, tls_options
 from services.model.results import ChannelParams, RunResult
 from services.model.scenario import Scenario, load_scenario
 from services.model.types import Policy, RunMode
+from services.supervise.expand import expand_scenario
+from services.supervise.hosts import default_cars_per_process, group_cars
 from services.supervise.lab.faults import (
     AirCounters,
     Direction,
@@ -133,9 +136,16 @@ __all__ = [
 LOG = logging.getLogger("crosspath.lab")
 
 UDP_PORT: Final = 7447
-"""Every node's Zenoh UDP endpoint (V2X) on its air address."""
+"""Every node's Zenoh UDP endpoint (V2X) on its air address (the ``k``-th car of a host
+process: ``UDP_PORT + 2k``)."""
 TCP_PORT: Final = 7448
-"""Every node's Zenoh TCP endpoint (plumbing) on its wire address."""
+"""Every node's Zenoh TCP endpoint (plumbing) on its wire address (``TCP_PORT + 2k``)."""
+QUIC_DATAGRAMS: Final = "?rel=0"
+"""Endpoint metadata of a QUIC link that carries best-effort messages as unreliable QUIC
+datagrams (the TLS lab's air: V2X stays lossy datagrams, now under mutual TLS)."""
+TLS_SETTLE_S: Final = 0.5
+"""After every node pair exchanged QUIC packets on the air, how long to let the
+handshakes finish before faults go in [wall s]."""
 LAB_LEASE_MS: Final = 3_600_000
 """Zenoh link lease of lab daemons [ms]: long, so a lossy UDP link is never closed (see
 the module docstring)."""
@@ -147,6 +157,8 @@ START_WAIT_S: Final = 45.0
 """How long to wait for the monitor to start the run (all daemons up) [wall s]."""
 DEFAULT_RUN_ROOT: Final = Path("results") / "lab"
 METER_TABLE: Final = "crosspath_meter"
+AIR_FROM_SET: Final = "air_from"
+"""The meter's set of addresses a node received UDP from on the air."""
 _METER_NETS: Final = ("air", "wire")
 _METER_PROTOS: Final = ("udp", "tcp", "other")
 
@@ -188,12 +200,29 @@ def parse_timed(text: str) -> TimedAction:
     return TimedAction(node, seconds)
 
 
-def lab_endpoints(lab: Lab, nodes: Sequence[str]) -> dict[str, Endpoints]:
-    """Every node's endpoints: UDP on its air address (V2X), TCP on its wire address."""
-    return {
-        n: Endpoints(f"udp/{lab.air_addr(n)}:{UDP_PORT}", f"tcp/{lab.wire_addr(n)}:{TCP_PORT}")
-        for n in nodes
-    }
+def lab_endpoints(
+    lab: Lab,
+    nodes: Sequence[str],
+    *,
+    tls: bool = False,
+    netns_of: Mapping[str, tuple[str, int]] | None = None,
+) -> dict[str, Endpoints]:
+    """Every node's endpoints: UDP on its air address (V2X), TCP on its wire address; with
+    ``tls``, QUIC datagrams (:data:`QUIC_DATAGRAMS`) on the air and TLS on the wire, both
+    with mutual TLS. ``netns_of`` maps a node to (the node whose namespace it lives in,
+    its index there): the ``k``-th car of a host process listens on ports ``+ 2k``."""
+    out: dict[str, Endpoints] = {}
+    for n in nodes:
+        ns, k = (netns_of or {}).get(n, (n, 0))
+        air, wire = (
+            f"{lab.air_addr(ns)}:{UDP_PORT + 2 * k}",
+            f"{lab.wire_addr(ns)}:{TCP_PORT + 2 * k}",
+        )
+        if tls:
+            out[n] = Endpoints(f"quic/{air}{QUIC_DATAGRAMS}", f"tls/{wire}")
+        else:
+            out[n] = Endpoints(f"udp/{air}", f"tcp/{wire}")
+    return out
 
 
 # --------------------------------------------------------------------------- signals
@@ -238,7 +267,7 @@ def _shielded() -> Iterator[list[int]]:
 def meter_ruleset(air_if: str, wire_if: str) -> str:
     """The ``nft -f`` script of the per-interface, per-protocol byte counters (pure)."""
     t = f"inet {METER_TABLE}"
-    lines = [f"add table {t}"]
+    lines = [f"add table {t}", f"add set {t} {AIR_FROM_SET} {{ type ipv4_addr; flags dynamic; }}"]
     for net in _METER_NETS:
         for proto in _METER_PROTOS:
             for way in ("in", "out"):
@@ -248,6 +277,11 @@ def meter_ruleset(air_if: str, wire_if: str) -> str:
         lines.append(
             f"add chain {t} {chain} {{ type filter hook {hook} priority -400; policy accept; }}"
         )
+        if hook == "input":  # who sent us UDP on the air (the TLS lab's link check)
+            lines.append(
+                f'add rule {t} {chain} iifname "{air_if}" meta l4proto udp '
+                f"add @{AIR_FROM_SET} {{ ip saddr }}"
+            )
         for net, ifname in (("air", air_if), ("wire", wire_if)):
             rule = f'add rule {t} {chain} {match} "{ifname}"'
             lines.append(f"{rule} meta l4proto udp counter name {net}_udp_{way}")
@@ -289,24 +323,68 @@ def udp_peers(lab: Lab, node: str) -> set[str]:
     return peers
 
 
-def wait_udp_links(
-    lab: Lab, order: Sequence[str], timeout_s: float = LINK_WAIT_S
-) -> dict[str, list[str]]:
-    """Wait until every node holds a UDP link to every node started before it.
+def air_senders(lab: Lab, node: str) -> set[str]:
+    """Addresses ``node`` has received UDP from on the air (the meter's set)."""
+    out = lab.nft(node, ["-j", "list", "set", "inet", METER_TABLE, AIR_FROM_SET])
+    found: set[str] = set()
+    for item in json.loads(out).get("nftables", []):
+        entry = item.get("set") if isinstance(item, dict) else None
+        if isinstance(entry, dict):
+            found.update(str(e) for e in entry.get("elem", []) if isinstance(e, str))
+    return found
 
+
+def wait_udp_links(
+    lab: Lab,
+    order: Sequence[str],
+    timeout_s: float = LINK_WAIT_S,
+    *,
+    tls: bool = False,
+    endpoints: Mapping[str, Endpoints] | None = None,
+) -> dict[str, list[str]]:
+    """Wait until every namespace node holds a UDP link to every node started before it
+    (``order``: namespace nodes in start order).
+
+    Plain UDP links are connected sockets (``ss``); with ``tls`` the QUIC endpoints'
+    sockets are not connected, so a link counts once both namespaces received UDP from
+    each other on the air (:func:`air_senders`), then :data:`TLS_SETTLE_S` lets the
+    handshakes finish (QUIC retransmits a lost handshake packet, unlike Zenoh over UDP).
+    ``endpoints`` (every node's, cars of hosts included) gives the ports to expect.
     Returns what is still missing per node (empty when all links are up).
     """
+    air = {n: lab.air_addr(n) for n in order}
+    wanted: dict[str, set[str]] = {}
+    for j, node in enumerate(order):
+        if j == 0:
+            continue
+        if tls:
+            wanted[node] = {air[n] for n in order[:j]}
+        elif endpoints is None:
+            wanted[node] = {f"{air[n]}:{UDP_PORT}" for n in order[:j]}
+        else:
+            earlier = {air[n] for n in order[:j]}
+            wanted[node] = {
+                e.udp.split("/", 1)[1]
+                for e in endpoints.values()
+                if e.udp.split("/", 1)[1].rsplit(":", 1)[0] in earlier
+            }
     deadline = time.monotonic() + timeout_s
     while True:
         missing: dict[str, list[str]] = {}
-        for j, node in enumerate(order):
-            if j == 0:
-                continue
-            want = {f"{lab.air_addr(n)}:{UDP_PORT}" for n in order[:j]}
-            absent = want - udp_peers(lab, node)
-            if absent:
-                missing[node] = sorted(absent)
+        if tls:
+            heard = {n: air_senders(lab, n) for n in order}
+            for j, node in enumerate(order):
+                for other in order[:j]:
+                    if air[other] not in heard[node] or air[node] not in heard[other]:
+                        missing.setdefault(node, []).append(air[other])
+        else:
+            for node, want in wanted.items():
+                absent = want - udp_peers(lab, node)
+                if absent:
+                    missing[node] = sorted(absent)
         if not missing or time.monotonic() > deadline:
+            if tls and not missing:
+                time.sleep(TLS_SETTLE_S)
             return missing
         time.sleep(0.1)
 
@@ -475,22 +553,64 @@ class LabSession:
     name: str
     log_dir: Path
     lease_ms: int = LAB_LEASE_MS
+    tls: bool = True
+    """Mutual TLS on every Zenoh link (QUIC datagrams on the air, TLS on the wire) with
+    certificates from a throw-away ``crosspath keys`` authority; False: plain UDP and TCP
+    (for comparison)."""
+    seed: int = 0
+    """The seed a scenario with flows is expanded for (``services.supervise.expand``)."""
+    cars_per_process: int | None = None
+    """Cars per daemon process (None: ``hosts.default_cars_per_process``); a host
+    process's cars share its namespace (the first car's), each listening on its own ports."""
     lab: Lab = field(init=False)
     plan: LabPlan = field(init=False)
     order: list[str] = field(init=False)
     """Nodes in start order: the monitor, the RSUs (``rsu`` mode), the cars."""
     daemons: list[_Daemon] = field(init=False, default_factory=list)
     scenario: Scenario = field(init=False)
+    groups: list[list[str]] = field(init=False)
+    """The cars of each daemon process, in start order (one each without hosts)."""
+    netns_of: dict[str, tuple[str, int]] = field(init=False)
+    """Car -> (the namespace node of its process, its index in the process)."""
+    expanded: bool = field(init=False)
+    """The scenario had flows: ``scenario_path`` is its expansion for :attr:`seed`."""
 
     def __post_init__(self) -> None:
         check_lab_name(self.name)
+        if self.cars_per_process is not None and self.cars_per_process < 1:
+            raise ValueError(f"cars per process must be >= 1, got {self.cars_per_process}")
         self.scenario = load_scenario(self.scenario_path)
-        self.scenario.require_no_flows("the network lab")
+        self.expanded = bool(self.scenario.spec.flows)
+        if self.expanded:  # every daemon loads the cars of this seed
+            self.scenario_path = expand_scenario(
+                self.scenario, self.seed, self.log_dir / "scenario.toml"
+            )
+            self.scenario = load_scenario(self.scenario_path)
         self.order = node_order(self.scenario, self.mode, MONITOR)
         cars = [v.id for v in self.scenario.vehicles]
+        per = self.cars_per_process or default_cars_per_process(len(cars))
+        self.groups = [cars[i : i + per] for i in range(0, len(cars), per)]
+        self.netns_of = {car: (g[0], k) for g in self.groups for k, car in enumerate(g)}
         rsus = [r.id for r in self.scenario.rsus] if self.mode is RunMode.RSU else []
-        self.plan = LabPlan.build(self.name, cars=cars, rsus=rsus, monitor=MONITOR)
+        self.plan = LabPlan.build(
+            self.name, cars=[g[0] for g in self.groups], rsus=rsus, monitor=MONITOR
+        )
         self.lab = Lab(self.name)
+
+    @property
+    def ns_order(self) -> list[str]:
+        """Namespace nodes in start order (a host process's namespace is its first car's)."""
+        return [n for n in self.order if self.netns_of.get(n, (n, 0))[1] == 0]
+
+    def endpoints(self) -> dict[str, Endpoints]:
+        """Every node's endpoints (:func:`lab_endpoints`, TLS or not)."""
+        return lab_endpoints(self.lab, self.order, tls=self.tls, netns_of=self.netns_of)
+
+    def netns_node(self, key: str) -> str:
+        """The namespace node of a command key (a node id, or a host's ``host.<k>``)."""
+        if key.startswith("host."):
+            return self.groups[int(key.removeprefix("host."))][0]
+        return self.netns_of.get(key, (key, 0))[0]
 
     @property
     def radio_nodes(self) -> list[str]:
@@ -522,13 +642,17 @@ class LabSession:
             # ``pgrep -f`` finds the lab's processes by name).
             "metadata": {"crosspath_lab": self.name},
         }
-        return actor_commands(
+        if self.expanded and seed != self.seed:
+            raise ValueError(f"the flows were drawn for seed {self.seed}, not {seed}")
+        # issue 13: signed V2X with a throw-away authority beside the logs
+        keys_dir = make_run_authority(self.log_dir / "keys", self.scenario, MONITOR)
+        commands = actor_commands(
             self.scenario_path,
             self.mode,
             policy,
             seed,
             speed,
-            lab_endpoints(self.lab, self.order),
+            self.endpoints(),
             monitor=MONITOR,
             json_out=json_out,
             run_id=run_id,
@@ -536,12 +660,24 @@ class LabSession:
             start_delay_s=start_delay_s,
             log_level=log_level,
             zenoh_options=options,
-            # issue 13: signed V2X with a throw-away authority beside the logs
-            keys_dir=make_run_authority(self.log_dir / "keys", self.scenario, MONITOR),
+            keys_dir=keys_dir,
         )
+        per = max(len(g) for g in self.groups) if self.groups else 1
+        if per > 1:
+            commands = group_cars(commands, [c for g in self.groups for c in g], per)
+        if self.tls:  # issue 13: mutual TLS, one X.509 certificate per process
+            # absolute: Zenoh opens the files from the daemon's own working directory
+            tls_dir = keys_dir.resolve()
+            make_tls(tls_dir, list(commands))
+            commands = {
+                key: _with_zenoh_options(argv, options | tls_options(tls_dir, key))
+                for key, argv in commands.items()
+            }
+        return commands
 
     def start(self, node: str, argv: Sequence[str]) -> _Daemon:
-        """Start ``argv`` in ``node``'s namespace; output appended to ``<log_dir>/<node>.log``."""
+        """Start ``argv`` (command key ``node``) in its namespace; output appended to
+        ``<log_dir>/<node>.log``."""
         self.log_dir.mkdir(parents=True, exist_ok=True)
         log = (self.log_dir / f"{node}.log").open("ab")
         if any(d.node == node for d in self.daemons):
@@ -549,7 +685,7 @@ class LabSession:
             log.flush()
         try:
             process = self.lab.exec(
-                node,
+                self.netns_node(node),
                 list(argv),
                 env=daemon_env(),
                 stdout=log,
@@ -610,6 +746,17 @@ class LabSession:
             self.lab.down()
         finally:
             self.close_logs()
+
+
+def _with_zenoh_options(argv: Sequence[str], options: Mapping[str, object]) -> list[str]:
+    """``argv`` with its ``--set zenoh.options=...`` replaced by ``options``."""
+    out = list(argv)
+    flag = "zenoh.options="
+    for i, arg in enumerate(out):
+        if arg.startswith(flag) and i > 0 and out[i - 1] == "--set":
+            out[i] = flag + json.dumps(dict(options))
+            return out
+    return [*out, "--set", flag + json.dumps(dict(options))]
 
 
 def _wait_start(path: Path, session: LabSession, timeout_s: float) -> dict[str, Any]:
@@ -733,6 +880,8 @@ def run_lab(
     trace: bool = False,
     log_level: str = "INFO",
     lease_ms: int = LAB_LEASE_MS,
+    tls: bool = True,
+    cars_per_process: int | None = None,
     say: Callable[[str], None] | None = None,
 ) -> RunResult:
     """One run in a fresh lab; returns the run result with ``network`` and ``lab`` (its
@@ -747,6 +896,10 @@ def run_lab(
     for bad arguments, :class:`~services.supervise.lab.netns.LabError` when the lab
     cannot be built or the run cannot start, :class:`LabInterrupted` on
     SIGINT/SIGTERM. The lab is always torn down before this returns or raises.
+
+    ``tls`` (the default) runs every Zenoh link under mutual TLS (:class:`LabSession`);
+    a scenario with flows is expanded for ``seed``; ``cars_per_process`` as ``crosspath
+    up --cars-per-process`` (a host process's cars share one namespace).
     """
     run_mode = RunMode(mode)
     run_policy = Policy(policy)
@@ -763,9 +916,21 @@ def run_lab(
     stamp = time.strftime("%Y%m%d-%H%M%S")
     run_id = f"lab-{name}-{secrets.token_hex(3)}"
     out_dir = run_dir or DEFAULT_RUN_ROOT / f"{stamp}-{name}"
-    session = LabSession(Path(scenario), run_mode, name, out_dir, lease_ms)
+    session = LabSession(
+        Path(scenario),
+        run_mode,
+        name,
+        out_dir,
+        lease_ms,
+        tls=tls,
+        seed=seed,
+        cars_per_process=cars_per_process,
+    )
     sc = session.scenario
     _validate_schedule(sc, run_mode, crash_at, restart_at)
+    for action in crash_at:
+        if any(action.node in g and len(g) > 1 for g in session.groups):
+            raise ValueError(f"cannot crash {action.node!r} alone: it shares a host process")
     max_sim = max_sim_s if max_sim_s is not None else sc.params.max_sim_s
     timeout = timeout_s if timeout_s is not None else max_sim / speed + 60.0
     report = say or (lambda _msg: None)
@@ -779,6 +944,8 @@ def run_lab(
         "name": name,
         "run_dir": str(out_dir),
         "lease_ms": lease_ms,
+        "tls": tls,
+        "processes": {},
         "endpoints": {},
         "nodes": {},
         "faults": {
@@ -818,9 +985,8 @@ def run_lab(
                 max_sim_s=max_sim_s,
                 log_level=log_level,
             )
-            lab_info["endpoints"] = {
-                n: e.locators for n, e in lab_endpoints(session.lab, session.order).items()
-            }
+            lab_info["endpoints"] = {n: e.locators for n, e in session.endpoints().items()}
+            lab_info["processes"] = {k: session.netns_node(k) for k in commands}
             monitor_argv = commands[MONITOR] + [
                 "--start-file",
                 str(start_path.resolve()),
@@ -834,7 +1000,9 @@ def run_lab(
             report(f"lab {name}: {len(commands)} daemons started, logs in {out_dir}")
             start = _wait_start(start_path, session, START_WAIT_S)
             epoch = float(start["epoch_unix"])
-            missing = wait_udp_links(session.lab, session.order)
+            missing = wait_udp_links(
+                session.lab, session.ns_order, tls=tls, endpoints=session.endpoints()
+            )
             if missing:
                 raise LabError(
                     "UDP links not established (faults would push V2X onto TCP): "

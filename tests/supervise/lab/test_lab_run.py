@@ -285,30 +285,8 @@ def _check_separate_and_routed(result: RunResult) -> None:
         assert air["tx_bytes"] >= air["air_udp_out_bytes"]
 
 
-@pytest.mark.timeout(150)
-def test_cars_and_rsu_in_separate_namespaces_complete_an_rsu_run(
-    lab_ready: None, tmp_path: Path
-) -> None:
-    result = run_lab(
-        PAPER,
-        RunMode.RSU,
-        seed=0,
-        speed=SPEED,
-        name=new_lab_name(),
-        run_dir=tmp_path / "run",
-        json_out=tmp_path / "result.json",
-    )
-    assert result.error is None, result.error
-    assert result.harness == "daemons" and result.all_finished
-    assert result.collisions == 0
-    fp = result.network.stream("fp") if result.network else None
-    assert fp is not None and fp.delivery_ratio is not None and fp.delivery_ratio >= 0.95
-    lab = result.lab or {}
-    assert lab["modes"]["B"]["coordinated_s"] > 0  # the RSU coordinated
-    assert result.provenance is not None and result.provenance.channel.kind == "lab"
-    _check_separate_and_routed(result)
-    assert json.loads((tmp_path / "result.json").read_text())["lab"]["name"] == lab["name"]
-    _gone(result)
+# The plain rsu run (separate namespaces, routed V2X and plumbing, under mutual TLS, with
+# intruders): tests/supervise/lab/test_lab_tls.py, one lab run for both.
 
 
 @pytest.mark.timeout(150)
