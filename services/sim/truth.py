@@ -260,6 +260,8 @@ class TruthSteps:
             return False
         reports = self._table.setdefault(step, {})
         if vid in reports:
+            if presence_of(report) == "left" and presence_of(reports[vid]) == "left":
+                return False  # a car repeats its "left" report (the daemon's): nothing new
             self.counters["duplicate"] += 1
         reports[vid] = report
         self._any_report = True

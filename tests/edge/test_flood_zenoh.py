@@ -87,11 +87,13 @@ def test_the_flooder_stays_bounded_and_on_loopback() -> None:
 
 
 @pytest.mark.daemons
-@pytest.mark.slow  # 12-20 s: one signed paper run at speed 6 and the daemons' start
+@pytest.mark.slow  # 20-30 s: one signed paper run at speed 3 and the daemons' start
 def test_real_daemons_under_a_flood_refuse_it_and_finish(tmp_path: Path) -> None:
     """The benchmark's flood phase, short: real RSU and car processes, signed, a flooder
     process; counts and outcomes only."""
-    data = measure(3.0, 5000.0, 500, speed=6.0, run_dir=tmp_path, phases=("flood",))
+    # speed 3: at 6 a 2-core machine running Python at half the usual speed ran the daemons
+    # so late under the flood that the run itself was no longer a real one (a collision)
+    data = measure(3.0, 5000.0, 500, speed=3.0, run_dir=tmp_path, phases=("flood",))
     flood = data["flood"]
     assert data["crashed"] == [] and flood["runs"] >= 1 and flood["ok_runs"] == flood["runs"]
     assert flood["collisions"] == 0 and flood["all_finished"]

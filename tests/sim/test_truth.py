@@ -97,6 +97,25 @@ def test_a_duplicate_replaces_the_first_and_is_counted(paper: Scenario) -> None:
     assert rows["A"][4] == pytest.approx(11.0)  # s of the second report
 
 
+@dataclass(frozen=True)
+class LeftReport(Report):
+    presence: str = "left"
+
+
+def test_a_repeated_left_report_is_ignored(paper: Scenario) -> None:
+    """A car repeats its "left" report (services.daemons.vehicle ``LEFT_REPEATS``): the
+    first is its truth, the repeats change nothing and are not logged."""
+    ts = steps(paper)
+    first = report(paper, "A", 0)
+    left = LeftReport(first.vehicle, first.step, first.state)
+    assert ts.on_report(0.0, left) is True
+    assert ts.on_report(0.0, left) is False and ts.on_report(0.01, left) is False
+    assert ts.counters["duplicate"] == 0
+    # a report of that car after its leave is out of the world
+    assert ts.on_report(0.05, report(paper, "A", 1)) is False
+    assert ts.counters["out_of_world"] == 1
+
+
 def test_a_missing_car_is_never_filled_in_it_is_a_gap(paper: Scenario) -> None:
     ts = steps(paper, speed=2.0)
     for k in range(4):

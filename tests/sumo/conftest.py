@@ -8,7 +8,13 @@ from pathlib import Path
 
 import pytest
 
-from services.sumo.netgen import Control, SumoNotFound, build_network, sumo_binary
+from services.sumo.netgen import (
+    Control,
+    SumoNotFound,
+    build_corridor,
+    build_network,
+    sumo_binary,
+)
 
 
 def require_sumo() -> None:
@@ -31,3 +37,12 @@ def short_nets(tmp_path_factory: pytest.TempPathFactory) -> dict[Control, Path]:
     require_sumo()
     d = tmp_path_factory.mktemp("nets")
     return {c: build_network(d / c.value, c, approach_m=40.0) for c in Control}
+
+
+@pytest.fixture(scope="session")
+def corridors(tmp_path_factory: pytest.TempPathFactory) -> dict[int, Path]:
+    """Priority corridors of 2 and 3 junctions (``j0``, ``j1``...) 40 m apart, arms and
+    ends of 20 m (quick to drive), keyed by their number of junctions."""
+    require_sumo()
+    d = tmp_path_factory.mktemp("corridors")
+    return {n: build_corridor(d, junctions=n, spacing_m=40.0, arm_m=20.0) for n in (2, 3)}

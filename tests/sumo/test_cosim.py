@@ -9,10 +9,17 @@ from pathlib import Path
 import pytest
 
 from services.cli.main import main
+from services.model.kinematics import TruthState
 from services.model.results import RunResult
 from services.model.types import RunMode
-from services.sumo.cosim import CosimOptions, _draw_connected, _free_time_to_exit, cosimulate
-from services.sumo.netgen import Control, build_network, write_routes
+from services.sumo.cosim import (
+    CosimOptions,
+    Cosimulation,
+    _draw_connected,
+    _free_time_to_exit,
+    cosimulate,
+)
+from services.sumo.netgen import Control, VehicleTypeSpec, build_network, write_routes
 from tests.sumo.conftest import require_sumo
 
 # straight from every approach and a left turn from the west, two cars following on
@@ -62,6 +69,71 @@ def test_rsu_mode_drives_every_car_through_without_a_collision(
     # the cars were crosspath's: each was coordinated by the RSU of junction "c"
     assert r.provenance is not None and r.provenance.policy_params.keys() == {"rsu-c"}
     assert json.loads(out.read_text())["sumo"]["step_s"] == pytest.approx(0.05)
+
+
+# the 2-junction corridor (tests/sumo/conftest.py): through traffic both ways, two cars
+# following west to east, one car crossing at j0 and one at j1 while they pass
+CORRIDOR_ROUTES = {
+    "we": "w_j0 j0_j1 j1_e",
+    "ew": "e_j1 j1_j0 j0_w",
+    "ns0": "n0_j0 j0_s0",
+    "sn1": "s1_j1 j1_n1",
+}
+CORRIDOR_DEPARTURES = {"we": [0.0, 3.0], "ew": [1.0], "ns0": [0.0], "sn1": [3.0]}
+
+
+class _OwnersWatched(Cosimulation):
+    """A co-simulation that records, at every planning step, the RSU coordinating each
+    connected car (its agent's owner, ``services.vehicle.coordination``)."""
+
+    owners: dict[str, set[str]]
+
+    def _plan(self, now: float, truths: dict[str, TruthState], reasons: dict[str, str]) -> None:
+        super()._plan(now, truths, reasons)
+        for cid in truths:
+            agent = self.cars[cid].agent
+            if agent is not None and agent.coordination.rsu is not None:
+                self.owners.setdefault(cid, set()).add(agent.coordination.rsu)
+
+
+def test_corridor_cars_are_coordinated_by_each_junction_rsu(
+    corridors: dict[int, Path], tmp_path: Path
+) -> None:
+    rows = sorted(
+        (t, f"{r}-{n}", r) for r, ts in CORRIDOR_DEPARTURES.items() for n, t in enumerate(ts)
+    )
+    routes = tmp_path / "corridor.rou.xml"
+    routes.write_text(
+        "\n".join(
+            ["<routes>", VehicleTypeSpec().xml()]
+            + [f'  <route id="{r}" edges="{e}"/>' for r, e in CORRIDOR_ROUTES.items()]
+            + [
+                f'  <vehicle id="{v}" type="car" route="{r}" depart="{t}" departSpeed="0"/>'
+                for t, v, r in rows
+            ]
+            + ["</routes>", ""]
+        )
+    )
+    sim = _OwnersWatched(corridors[2], routes, CosimOptions(mode=RunMode.RSU))
+    sim.owners = {}
+    r = sim.run()
+    assert r.sumo is not None and r.summary is not None
+    assert r.collisions == 0 and r.sumo.collisions == 0
+    assert r.min_gap_m is not None and r.min_gap_m > 0.0
+    assert r.all_finished and r.summary.vehicles_finished == len(rows) == 5
+    assert r.sumo.connected == 5
+    # one RSU per junction, and each coordinated exactly the cars that cross its junction
+    assert r.provenance is not None
+    assert r.provenance.policy_params.keys() == {"rsu-j0", "rsu-j1"}
+    assert sim.owners == {
+        "we-0": {"rsu-j0", "rsu-j1"},
+        "we-1": {"rsu-j0", "rsu-j1"},
+        "ew-0": {"rsu-j0", "rsu-j1"},
+        "ns0-0": {"rsu-j0"},
+        "sn1-0": {"rsu-j1"},
+    }
+    for rsu in sim.rsus.values():
+        assert rsu.counters["initiations"] > 0 and rsu.counters["coordinated_paths"] > 0
 
 
 def test_without_connected_cars_sumo_drives_all(four_way: tuple[Path, Path]) -> None:
