@@ -286,7 +286,7 @@ def test_a_liveliness_token_and_forged_stats_cannot_stand_in_for_the_rsu(tmp_pat
     up = prepare_up(PAPER, RunMode.RSU, speed=SPEED, run_dir=tmp_path / "run", start_delay_s=1.0)
     commands = dict(up.launcher.commands)
     rsu_argv = commands.pop("rsu1")  # no RSU at all
-    commands["monitor"] = [*commands["monitor"], "--set", "wait_actors_s=5"]
+    commands["monitor"] = [*commands["monitor"], "--wait-actors", "5"]  # the last one wins
     up.launcher.commands = commands
     connect = [rsu_argv[i + 1] for i, a in enumerate(rsu_argv) if a == "--connect"]
     forger = Authority.init(tmp_path / "evil-pki")
@@ -302,7 +302,8 @@ def test_a_liveliness_token_and_forged_stats_cannot_stand_in_for_the_rsu(tmp_pat
     assert not outcome.ok and outcome.monitor_code == 1
     assert outcome.result is None  # no run was ever started, so there is no result
     log = (tmp_path / "run" / "monitor.log").read_text()
-    assert "actors not present" in log and "rsu1" in log.split("actors not present")[1]
+    assert "actors not present after 5 s" in log
+    assert "rsu1" in log.split("actors not present")[1]
     assert "unauthenticated (bad_certificate)" in log or "unauthenticated (bad_trailer)" in log
     assert "starting run" not in log
     for car in ("A", "B"):

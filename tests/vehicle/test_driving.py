@@ -8,6 +8,9 @@ sqrt(a_lat * r); the top speed never exceeds V_max.
 from __future__ import annotations
 
 import math
+import os
+from collections.abc import Iterable
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -105,30 +108,45 @@ ORDER_MARGIN_S = 0.1
 period, for the step at which the two cars first see each other."""
 
 
+def _paper_trial(job: tuple[str, int]) -> tuple[int, int, float | None, float, bool, bool]:
+    """One paper-scenario run (a worker process): seed, collisions, min PET [s], B's start
+    minus A's [s], whether A and whether B went through first."""
+    mode, seed = job
+    r = simulate(parse_scenario(PAPER_TEXT), mode=mode, seed=seed)
+    lead = r.start_times["B"] - r.start_times["A"]
+    a, b = r.vehicles["A"].first_through, r.vehicles["B"].first_through
+    return seed, r.collisions, r.min_pet_s, lead, bool(a), bool(b)
+
+
+def _paper_trials(
+    mode: str, seeds: Iterable[int]
+) -> list[tuple[int, int, float | None, float, bool, bool]]:
+    """:func:`_paper_trial` for each seed, one worker process per core (independent runs)."""
+    with ProcessPoolExecutor(max_workers=max(os.cpu_count() or 1, 1)) as pool:
+        return list(pool.map(_paper_trial, [(mode, s) for s in seeds]))
+
+
 @pytest.mark.parametrize("mode", ["standalone", "fp-only"])
 def test_paper_trials_keep_the_headway_and_the_arrival_order(mode: str) -> None:
     # issue 17 follow-up: fp-only had min PET 0.32 s (both cars went), and in stand-alone
     # B went first in 10/10 although A starts delta ~ U(0, 1) s earlier
-    sc = parse_scenario(PAPER_TEXT)
-    headway = sc.params.headway_s
-    for seed in PAPER_SEEDS:
-        r = simulate(sc, mode=mode, seed=seed)
-        assert r.collisions == 0, seed
-        assert r.min_pet_s is not None and r.min_pet_s >= headway, (seed, r.min_pet_s)
-        lead = r.start_times["B"] - r.start_times["A"]
+    headway = parse_scenario(PAPER_TEXT).params.headway_s
+    for seed, collisions, min_pet, lead, a_first, b_first in _paper_trials(mode, PAPER_SEEDS):
+        assert collisions == 0, seed
+        assert min_pet is not None and min_pet >= headway, (seed, min_pet)
         if lead > TIE_S + ORDER_MARGIN_S:
-            assert r.vehicles["A"].first_through, (seed, lead)
+            assert a_first, (seed, lead)
         if lead < -(TIE_S + ORDER_MARGIN_S):
-            assert r.vehicles["B"].first_through, (seed, lead)
+            assert b_first, (seed, lead)
 
 
 def test_stand_alone_and_fp_only_agree_on_the_order() -> None:
     # the same arrival facts give the same verdict, with or without future paths
-    sc = parse_scenario(PAPER_TEXT)
-    for seed in range(0, 30, 3):
-        alone = simulate(sc, mode="standalone", seed=seed)
-        fp = simulate(sc, mode="fp-only", seed=seed)
-        assert alone.vehicles["A"].first_through == fp.vehicles["A"].first_through, seed
+    seeds = range(0, 30, 3)
+    alone = _paper_trials("standalone", seeds)
+    fp = _paper_trials("fp-only", seeds)
+    for a, f in zip(alone, fp, strict=True):
+        assert a[0] == f[0] and a[4] == f[4], a[0]
 
 
 def test_line_arrival_keeps_the_gap_between_cars_on_the_same_profile() -> None:
