@@ -469,20 +469,25 @@ def _limits_wire(limits: VehicleLimits | None) -> tuple[int, int, int, int]:
     return _remember(_LIMITS_WIRE, limits, wire)
 
 
+def _state_in_range(x: int, y: int, speed: int, h: int, length: int, width: int) -> bool:
+    """A vehicle state in wire units (cm, cm/s, 1e-4 rad) fits its fields."""
+    return (
+        -_MAX_COORD_CM <= x <= _MAX_COORD_CM
+        and -_MAX_COORD_CM <= y <= _MAX_COORD_CM
+        and 0 <= speed <= _MAX_SPEED_CM_S
+        and -_MAX_HEADING <= h <= _MAX_HEADING
+        and 1 <= length <= _MAX_LENGTH_CM
+        and 1 <= width <= _MAX_WIDTH_CM
+    )
+
+
 def _vehicle_state(m: VehiclePath, heading: float) -> tuple[int, ...]:
     """x, y, speed, heading, length, width of ``m`` in wire units, range checked."""
     try:  # fast path: one expression; any failure is explained by ``_fixed`` below
         x, y = round(float(m.x) * 100.0), round(float(m.y) * 100.0)
         speed, h = round(float(m.speed) * 100.0), round(heading * 1e4)
         length, width = round(float(m.length) * 100.0), round(float(m.width) * 100.0)
-        if (
-            -_MAX_COORD_CM <= x <= _MAX_COORD_CM
-            and -_MAX_COORD_CM <= y <= _MAX_COORD_CM
-            and 0 <= speed <= _MAX_SPEED_CM_S
-            and -_MAX_HEADING <= h <= _MAX_HEADING
-            and 1 <= length <= _MAX_LENGTH_CM
-            and 1 <= width <= _MAX_WIDTH_CM
-        ):
+        if _state_in_range(x, y, speed, h, length, width):
             return x, y, speed, h, length, width
     except (ValueError, OverflowError):
         pass
@@ -601,14 +606,7 @@ def _encode_vehicle_path_fast(kind: Kind, m: VehiclePath) -> bytes | None:
         length, width = round(float(m.length) * 100.0), round(float(m.width) * 100.0)
     except (ValueError, OverflowError, TypeError):
         return None
-    if not (
-        -_MAX_COORD_CM <= x <= _MAX_COORD_CM
-        and -_MAX_COORD_CM <= y <= _MAX_COORD_CM
-        and 0 <= speed <= _MAX_SPEED_CM_S
-        and -_MAX_HEADING <= heading <= _MAX_HEADING
-        and 1 <= length <= _MAX_LENGTH_CM
-        and 1 <= width <= _MAX_WIDTH_CM
-    ):
+    if not _state_in_range(x, y, speed, heading, length, width):
         return None
     n, widths, packed = _points(kind, m.points, None, time_us)
     lv, la, ld, ll = wire

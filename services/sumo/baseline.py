@@ -31,7 +31,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from types import ModuleType
-from typing import Any
+from typing import Any, Final
 
 from services.sumo.netgen import (
     ROUTES,
@@ -45,6 +45,7 @@ from services.sumo.netgen import (
 
 __all__ = [
     "STEP_S",
+    "SUMO_RUN_ARGS",
     "SumoRun",
     "free_time_loss",
     "run_sumo",
@@ -55,6 +56,22 @@ log = logging.getLogger("crosspath.sumo")
 
 STEP_S = 0.1
 """SUMO's step [s]."""
+
+
+SUMO_RUN_ARGS: Final = (
+    "--collision.action",
+    "warn",
+    "--collision.check-junctions",
+    "true",
+    "--time-to-teleport",
+    "-1",
+    "--no-step-log",
+    "true",
+    "--no-warnings",
+    "true",
+)
+"""SUMO options of every run here (baseline and co-simulation): collisions counted, not
+removed, on lanes and in junctions; no teleporting; quiet."""
 
 
 def sumo_api() -> ModuleType:
@@ -125,16 +142,7 @@ def _simulate(
         str(STEP_S),
         "--tripinfo-output",
         str(tripinfo),
-        "--collision.action",
-        "warn",
-        "--collision.check-junctions",
-        "true",
-        "--time-to-teleport",
-        "-1",
-        "--no-step-log",
-        "true",
-        "--no-warnings",
-        "true",
+        *SUMO_RUN_ARGS,
         "--seed",
         "0",
     ]

@@ -98,7 +98,7 @@ from services.sim.membus import ChannelModel, MemoryChannel
 from services.sim.metrics import FREE_FLOW_STEP_M, MetricsRecorder
 from services.sim.results import provenance, run_result
 from services.sim.sensors import perceive
-from services.sumo.baseline import sumo_api
+from services.sumo.baseline import SUMO_RUN_ARGS, sumo_api
 from services.sumo.from_sumo import SumoNetwork, _Ids, _join, read_net, scenario_from_net
 from services.sumo.netgen import sumo_binary
 from services.vehicle.agent import AgentSpec, VehicleAgent
@@ -432,18 +432,9 @@ class Cosimulation:
             "true",
             "--tripinfo-output",
             str(tripinfo),
-            "--collision.action",
-            "warn",
-            "--collision.check-junctions",
-            "true",
+            *SUMO_RUN_ARGS,
             "--collision.mingap-factor",
             "0",
-            "--time-to-teleport",
-            "-1",
-            "--no-step-log",
-            "true",
-            "--no-warnings",
-            "true",
             "--seed",
             str(self.options.seed),
             *self.options.sumo_args,
