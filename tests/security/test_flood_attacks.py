@@ -52,7 +52,10 @@ from services.supervise.launcher import make_run_authority
 
 REPO = Path(__file__).resolve().parents[2]
 PAPER = REPO / "scenarios" / "paper-blind-intersection.toml"
-SPEED = 8.0
+SPEED = 4.0
+"""Run speed: every daemon shares this one event loop with the flood's inboxes; at 8 a
+2-core machine running Python at half the usual speed fell so far behind the run clock
+that one run in about ten collided (the run was no longer a real one)."""
 RATE_HZ = 1000.0
 """In process the flooder shares the GIL with every daemon, so it floods at 1000/s here;
 5000/s over real Zenoh: ``tests/edge/test_flood_zenoh.py`` and ``bench`` (processes)."""
