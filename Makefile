@@ -27,13 +27,17 @@ lint: install
 
 # `make test` is what CI runs (.ci/run sets CI): everything, the wheel installed in a fresh
 # venv included (tests/test_packaging.py). Tests marked `slow` run on CI, or with SLOW=1.
-SLOW_TESTS = $(if $(CI)$(SLOW),,-m "not slow")
+# Two passes: the pure tests (virtual clock, no sockets) on every core (pytest-xdist), then
+# the `serial` ones alone (real time, daemons, the network lab; tests/conftest.py marks them),
+# so that no timing-sensitive test shares the CPU with another test.
+NOT_SLOW = $(if $(CI)$(SLOW),,and not slow)
 
 test: install sysdeps lint
-	$(BIN)/pytest -q $(SLOW_TESTS)
+	$(BIN)/pytest -q -n auto -m "not serial $(NOT_SLOW)"
+	$(BIN)/pytest -q -m "serial $(NOT_SLOW)"
 
 test-fast: install
-	$(BIN)/pytest -q -m "not daemons and not lab and not packaging and not slow"
+	$(BIN)/pytest -q -n auto -m "not serial and not slow"
 
 bench: install
 	@mkdir -p $(OUT)/bench

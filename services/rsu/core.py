@@ -54,6 +54,10 @@ policies, cars following their coordinated paths exactly) and cause by cause in
    car is released only when its own path is clear over ``T_free`` by the margins.
 5. No car waits forever while its way is free: a ``C_SLOW`` car whose path is clear
    and which is approaching is promoted (dwell permitting).
+6. Bodies in the zone keep a crossing order (``_zone_taken``, ``_order_clash``): a car
+   whose front is in the zone is committed, and no ``C_FAST`` or slot plan, release or
+   unslowed ``AUTO`` path puts a body in the zone within a headway of a committed car's
+   (the point rule's 2.8 m misses bodies that touch at a crawl).
 
 Status: the property holds for ``slot``; for ``paper`` it still fails where a turning
 car merges into a lane a straight car also uses (``KNOWN_FAILURE`` in the test).
@@ -487,8 +491,15 @@ class RsuCore:
     def _committed(self, car: _Car, points: FloatArray | None = None) -> bool:
         """The car cannot comfortably stop before the zone any more: it is in the zone, or
         its front is within its comfortable braking distance (plus ``stop_gap_m``) of the
-        zone's edge along ``points`` (default: its table entry)."""
+        zone's edge along ``points`` (default: its table entry). A car whose front is
+        already in the zone is committed too, wherever its path ends: it blocks the
+        crossing until it has driven on (found in ``four-way-flows``, slot, seed 0)."""
         if self._zone.contains_point(car.x, car.y):
+            return True
+        half = 0.5 * car.length
+        front_x = car.x + half * math.cos(car.heading)
+        front_y = car.y + half * math.sin(car.heading)
+        if self._zone.contains_point(front_x, front_y):
             return True
         if points is None:
             entry = self.table.get(car.vehicle)
@@ -515,13 +526,23 @@ class RsuCore:
             else self.velocity.limits_of(path).decel
         )
 
-    def _order_clash(self, car: _Car, points: FloatArray, now: float) -> str | None:
+    def _order_clash(
+        self,
+        car: _Car,
+        points: FloatArray,
+        now: float,
+        *,
+        moving_only: bool = False,
+        horizon_s: float = math.inf,
+    ) -> str | None:
         """The first committed car (in ``C_FAST`` or :meth:`_committed`) whose zone occupancy
         ``points`` would come within ``headway_s`` of, or None.
 
         The table's point-pair check compares reference points within ``D_margin``; a
         slow car's body occupies the zone far longer than that, so a crossing order is
-        checked on the zone occupancy of whole bodies too.
+        checked on the zone occupancy of whole bodies too. ``moving_only``: count only
+        committed cars that are not told to stop (``C_SLOW``); ``horizon_s``: only
+        occupancies that overlap within this of ``now`` [s].
         """
         mine = self._occupancy(points, car.length)
         if mine is None:
@@ -533,12 +554,31 @@ class RsuCore:
             if vehicle == car.vehicle or other is None or entry is None:
                 continue
             theirs = self._occupancy(entry.points, other.length)
-            if theirs is None or theirs[1] < now:
+            if theirs is None or theirs[1] < now or (moving_only and other.mode == Mode.C_SLOW):
                 continue
             overlaps = mine[0] < theirs[1] + headway and theirs[0] < mine[1] + headway
-            if overlaps and (other.mode == Mode.C_FAST or self._committed(other)):
+            soon = max(mine[0], theirs[0]) <= now + horizon_s  # the later entry
+            if overlaps and soon and (other.mode == Mode.C_FAST or self._committed(other)):
                 return vehicle
         return None
+
+    def _zone_taken(self, car: _Car, points: FloatArray, now: float) -> bool:
+        """Left to its own path ``points``, ``car`` (``AUTO``, or ``C_SLOW`` about to be
+        released) would be in the zone within a headway of a committed car's body
+        (:meth:`_order_clash`). The point rule's 2.8 m between centres misses bodies
+        that touch at a crawl (a 4.5 m car reaches 3.15 m from its centre at a corner;
+        found in ``four-way-flows``, slot, seed 0). A car that is committed itself
+        waits only for one that is moving (not ``C_SLOW``): two committed cars told to
+        stop never wait for each other, the first judged goes on. Within ``T_collision``
+        for an ``AUTO`` car (the paper's rule for slowing it), ``T_free`` for a release."""
+        committed = self._committed(car, points)
+        cfg = self.config
+        horizon = cfg.t_collision_s if car.mode == Mode.AUTO else cfg.t_free_s
+        clash = self._order_clash(car, points, now, moving_only=committed, horizon_s=horizon)
+        if clash is None:
+            return False
+        self.counters["zone_taken"] += 1
+        return True
 
     def _yields(self, car: _Car, car_points: FloatArray, other: _Car) -> bool:
         """Must ``car`` (whose path is ``car_points``) give way to ``other``?
@@ -664,6 +704,8 @@ class RsuCore:
                 # over T_free by the margins (hysteresis: T_collision to slow it, T_free
                 # to let it go; issue 12, cause 4), and not within the dwell
                 event = RsuEvent.CONFLICT
+            elif self._zone_taken(car, query, now):
+                event = RsuEvent.CONFLICT  # left alone, it would drive into a committed body
             else:
                 event = RsuEvent.NO_CONFLICT
         out = self._apply(now, car, event, path, plan)
@@ -751,7 +793,14 @@ class RsuCore:
         """Compute (unless given), reserve and send the car's coordinated path."""
         if plan is None:
             firm = car.held_short and car.mode == Mode.C_SLOW
-            plan = self.velocity.plan(car.vehicle, path, car.mode, now, self.table, firm=firm)
+
+            def in_order(points: FloatArray) -> bool:
+                # a slot enters the zone: it keeps the crossing order as a C_FAST plan does
+                return self._order_clash(car, points, now) is None
+
+            plan = self.velocity.plan(
+                car.vehicle, path, car.mode, now, self.table, firm=firm, admissible=in_order
+            )
         car.held_short = plan.short
         points, speeds = plan.points, plan.speeds
         cap = self.config.max_points

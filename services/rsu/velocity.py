@@ -54,7 +54,7 @@ slot search checks conflicts with the pair margin they give, see
 from __future__ import annotations
 
 import math
-from collections.abc import Collection
+from collections.abc import Callable, Collection
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -310,11 +310,14 @@ class VelocityManager:
         exclude: Collection[str] = (),
         *,
         firm: bool = False,
+        admissible: Callable[[FloatArray], bool] | None = None,
     ) -> SpeedPlan:
         """Coordinated path body for ``vehicle`` in ``mode`` from its autonomous ``path``,
         with the limits the path declares (else the configuration's). ``firm``: the car
         was last told to stop short of the zone (``SpeedPlan.short``), and keeps that
-        stop braking up to ``FIRM_STOP_FACTOR``."""
+        stop braking up to ``FIRM_STOP_FACTOR``. ``admissible``: a further test a slot
+        path (points (M, 3)) must pass besides the table's, e.g. the RSU's crossing
+        order of committed cars."""
         cfg = self.config
         track = _track(path, self.limits_of(path), now, cfg.t_free_s)
         if mode == Mode.C_FAST:
@@ -323,7 +326,7 @@ class VelocityManager:
             factor = FIRM_STOP_FACTOR if firm else HARD_STOP_FACTOR
             limit = self.stop_limit(vehicle, track, now, table, exclude, factor)
             if self.policy == Policy.SLOT:
-                plan = self._slot(vehicle, track, now, table, exclude)
+                plan = self._slot(vehicle, track, now, table, exclude, admissible)
                 if plan.kind != "slot_fallback":
                     return plan
                 return self._stop(track, "slot_fallback", limit)
@@ -551,6 +554,7 @@ class VelocityManager:
         now: float,
         table: ReservationTable,
         exclude: Collection[str],
+        admissible: Callable[[FloatArray], bool] | None = None,
     ) -> SpeedPlan:
         cfg = self.config
         cap, entry = self._fast_caps(tr)
@@ -586,7 +590,7 @@ class VelocityManager:
                 cfg.release_margin_s,
             )
             if hit is None:
-                return plan
+                return plan if admissible is None or admissible(plan.points) else None
             culprit[:] = [hit.vehicle]
             return None
 

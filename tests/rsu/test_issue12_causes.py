@@ -299,3 +299,64 @@ def test_cause6_slot_entry_keeps_the_release_margins_and_survives_the_next_repla
         "B", message(AutonomousPath, "B", again, v, NORTH, Mode.C_SLOW), Mode.C_SLOW, t, table
     )
     assert table.naive_conflicts("B", replan.points, t, cfg.t_collision_s) == []
+
+
+# -- cause 7: a body in the zone -------------------------------------------------------------
+# Found in four-way-flows (slot, seed 0): two turning cars crawled into the box, each
+# judged by its centre; at a crawl the point rule's 2.8 m between centres misses bodies
+# that touch (a 4.5 m x 1.8 m car reaches 3.15 m ahead of its centre at a corner).
+
+
+def test_cause7_a_car_with_its_front_in_the_zone_is_committed() -> None:
+    """Its centre outside, its front 0.75 m in, at rest, told to stop: it is committed (it
+    blocks the crossing until it drives on), whatever its table entry says."""
+    core = RsuCore(config(), listen_s=0.0)
+    car = rsu_core._Car("A", mode=Mode.C_SLOW, x=-4.5, y=-1.75, heading=EAST, speed=0.0)
+    core._cars["A"] = car
+    core.table.update("A", held(-4.5, -1.75, 0.0), 0.0)
+    assert not core._zone.contains_point(car.x, car.y)
+    assert core._committed(car)
+    car.x = -6.0  # front 0.75 m short of the zone: not committed at rest
+    assert not core._committed(car)
+
+
+def test_cause7_no_slot_through_a_body_standing_in_the_zone() -> None:
+    """A stands in the box 2.95 m from B's lane (beyond the point rule's 2.8 m, but its
+    front reaches across B's lane). B's slot must wait until A's hold is over."""
+    cfg = config(Policy.SLOT)
+    core = RsuCore(cfg, listen_s=0.0)
+    core._cars["A"] = rsu_core._Car("A", mode=Mode.C_SLOW, x=-1.2, y=-1.75, heading=EAST)
+    core.table.update("A", held(-1.2, -1.75, 0.0), 0.0)
+    b = straight((CROSS[0], CROSS[1] - 40.0), NORTH, 8.0, 0.0)
+    assert core.table.naive_conflicts("B", b, 0.0, cfg.t_free_s) == []  # the point rule
+    out = core.on_message(0.0, message(FuturePath, "B", b, 8.0, NORTH))
+    assert core.mode_of("B") == Mode.C_SLOW
+    cps = [o.message for o in out if isinstance(o.message, CoordinatedPath)]
+    assert len(cps) == 1
+    entry = paths.zone_entry_time(cps[0].points, ZONE)
+    assert entry >= 10.0 + cfg.headway_s  # after A's hold, or never (a stop)
+
+
+def test_cause7_a_car_in_the_zone_is_not_released_while_a_committed_body_moves_in_it() -> None:
+    """B (C_SLOW) crawls in the box; A drives through the box in AUTO on the opposing lane.
+    The point rule sees no conflict (3.5 m apart), but a committed body in the zone within
+    a headway holds B (the zone rule is whole-zone and conservative: the point rule let
+    two turning bodies touch at a crawl). B is released once A is through."""
+    cfg = config()
+    core = RsuCore(cfg, listen_s=0.0)
+    south = -NORTH
+    a = straight((-1.75, 3.0), south, 3.0, 0.0)
+    core.on_message(0.0, message(FuturePath, "A", a, 3.0, south))
+    assert core.mode_of("A") == Mode.AUTO
+    b = straight((1.75, -3.0), NORTH, 0.5, 0.0)
+    assert core.table.naive_conflicts("B", b, 0.0, cfg.t_free_s, (), 0.6, 0.2) == []
+    core._cars["B"] = rsu_core._Car("B", mode=Mode.C_SLOW, x=1.75, y=-3.0, heading=NORTH)
+    core.on_message(0.0, message(AutonomousPath, "B", b, 0.5, NORTH, Mode.C_SLOW), "rsu-1")
+    assert core.mode_of("B") == Mode.C_SLOW
+    assert core.counters["zone_taken"] == 1
+    # A through the zone, its body too: B is released
+    a2 = straight((-1.75, -12.0), south, 3.0, 4.0)
+    core.on_message(4.0, message(FuturePath, "A", a2, 3.0, south, seq=2))
+    b2 = straight((1.75, -2.9), NORTH, 0.5, 4.0)
+    core.on_message(4.0, message(AutonomousPath, "B", b2, 0.5, NORTH, Mode.C_SLOW, 2), "rsu-1")
+    assert core.mode_of("B") == Mode.AUTO
