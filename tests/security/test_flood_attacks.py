@@ -184,6 +184,16 @@ async def test_a_flood_of_future_paths_is_refused_and_the_run_unharmed(
     flooders: list[Flooder] = []
 
     async def attack(bus: MemoryBus, done: asyncio.Event) -> None:
+        # From the run's start on (a daemon admits only the run's nodes once its start
+        # message has arrived; before a run it has no list to admit by, and its lanes are
+        # bounded by max_lanes alone): a flood begun first gave the fakes lanes.
+        peer = MemoryTransport(bus)
+        peer.open()
+        runs: list[str] = []
+        listen_for_runs(peer, runs)
+        while not runs and not done.is_set():
+            await asyncio.sleep(0.01)
+        await asyncio.sleep(0.5)  # every daemon has handled the start message
         # unsigned from new ids (signing 20 000 of them takes seconds), else wrongly signed
         spec = FloodSpec(rate_hz=RATE_HZ, new_ids=new_ids, duration_s=60.0, signed=not new_ids)
         flooder = Flooder(bus, spec)
@@ -192,6 +202,7 @@ async def test_a_flood_of_future_paths_is_refused_and_the_run_unharmed(
         await done.wait()
         flooder.done.set()
         await asyncio.to_thread(flooder.join)
+        peer.close()
 
     monitor, daemons = await run(load_scenario(PAPER), keys, attack)
     actors = unharmed(monitor)
