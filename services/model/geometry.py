@@ -660,6 +660,19 @@ def rects_overlap(a: FloatArray, b: FloatArray) -> bool:
     return not bool(_quads_separated(a[None], b[None])[0])
 
 
+def any_rects_overlap(a: FloatArray, b: FloatArray) -> bool:
+    """Does any footprint of ``a`` (M, 4, 2) overlap any of ``b`` (K, 4, 2)? All M x K
+    pairs by the separating axis theorem, vectorised (touching overlaps)."""
+    a = np.asarray(a, dtype=np.float64).reshape(-1, 4, 2)
+    b = np.asarray(b, dtype=np.float64).reshape(-1, 4, 2)
+    if len(a) == 0 or len(b) == 0:
+        return False
+    m, k = len(a), len(b)
+    pa = np.repeat(a, k, axis=0)
+    pb = np.tile(b, (m, 1, 1))
+    return not bool(np.all(_quads_separated(pa, pb)))
+
+
 def rect_distance(a: FloatArray, b: FloatArray) -> float:
     """Minimum distance (m) between two footprints (4, 2); 0 when they overlap."""
     return float(rect_distances(a[None], b[None])[0])

@@ -55,9 +55,10 @@ policies, cars following their coordinated paths exactly) and cause by cause in
 5. No car waits forever while its way is free: a ``C_SLOW`` car whose path is clear
    and which is approaching is promoted (dwell permitting).
 6. Bodies in the zone keep a crossing order (``_zone_taken``, ``_order_clash``): a car
-   whose front is in the zone is committed, and no ``C_FAST`` or slot plan, release or
-   unslowed ``AUTO`` path puts a body in the zone within a headway of a committed car's
-   (the point rule's 2.8 m misses bodies that touch at a crawl).
+   whose front is in the zone is committed; no ``C_FAST`` plan puts a body in the zone
+   within a headway of a committed car's, and no slot plan, release or unslowed ``AUTO``
+   path does so where the two bodies' sweeps through the zone meet (``_bodies_meet``;
+   the point rule's 2.8 m misses bodies that touch at a crawl).
 
 Status: the property holds for ``slot``; for ``paper`` it still fails where a turning
 car merges into a lane a straight car also uses (``KNOWN_FAILURE`` in the test).
@@ -108,6 +109,7 @@ from protocol.messages import (
     RsuBeacon,
     VehiclePath,
 )
+from services.model.geometry import any_rects_overlap, footprints
 from services.model.types import Policy
 from services.rsu import paths
 from services.rsu.config import RsuConfig
@@ -118,6 +120,7 @@ from services.rsu.reservation import (
     Conflict,
     ReservationTable,
     oversize,
+    path_headings,
     within_wire_bounds,
 )
 from services.rsu.velocity import SpeedPlan, VelocityManager
@@ -129,6 +132,10 @@ log = logging.getLogger("crosspath.rsu")
 FloatArray = npt.NDArray[np.float64]
 
 _DUE_SLACK_S = 1e-6  # a deadline this close counts as reached (float rounding)
+
+BODY_CLEARANCE_M = 0.25
+"""Two bodies whose sweeps through the zone come closer than twice this [m] cross or
+merge there (``RsuCore._bodies_meet``): opposing lanes 3.5 m apart keep 1.7 m."""
 
 MODE_DWELL_S = 0.5
 """A car is promoted or released no sooner than this after its last mode change [s]
@@ -526,6 +533,32 @@ class RsuCore:
             else self.velocity.limits_of(path).decel
         )
 
+    def _swept(self, points: FloatArray, car: _Car) -> FloatArray:
+        """Footprints (M, 4, 2) of ``car``'s body along ``points`` while it overlaps the
+        zone (as :meth:`_occupancy` finds it), each side grown by ``BODY_CLEARANCE_M``;
+        (0, 4, 2) when the path does not reach the zone."""
+        inside = np.flatnonzero(self._zone.contains(points[:, :2]))
+        if inside.size == 0:
+            return np.empty((0, 4, 2))
+        s = paths.arc_length(points)
+        half = 0.5 * car.length
+        body = (s >= s[inside[0]] - half) & (s <= s[inside[-1]] + half)
+        pts = points[body]
+        unit = path_headings(points)[body]
+        heading = np.where(np.isnan(unit[:, 0]), car.heading, np.arctan2(unit[:, 1], unit[:, 0]))
+        grow = 2.0 * BODY_CLEARANCE_M
+        return footprints(pts[:, 0], pts[:, 1], heading, car.length + grow, car.width + grow)
+
+    def _bodies_meet(
+        self, car: _Car, points: FloatArray, mine: FloatArray, other: _Car, entry: FloatArray
+    ) -> bool:
+        """``car`` (its path ``points``, swept bodies ``mine``) and ``other`` (its table
+        entry ``entry``) cross or merge in the zone: their bodies' sweeps there overlap,
+        and neither is ahead of the other in its lane (a follower is the follow rule's)."""
+        if self._ahead_in_lane(other, car, points) or self._ahead_in_lane(car, other, entry):
+            return False
+        return any_rects_overlap(mine, self._swept(entry, other))
+
     def _order_clash(
         self,
         car: _Car,
@@ -534,6 +567,7 @@ class RsuCore:
         *,
         moving_only: bool = False,
         horizon_s: float = math.inf,
+        crossing_only: bool = False,
     ) -> str | None:
         """The first committed car (in ``C_FAST`` or :meth:`_committed`) whose zone occupancy
         ``points`` would come within ``headway_s`` of, or None.
@@ -542,11 +576,14 @@ class RsuCore:
         slow car's body occupies the zone far longer than that, so a crossing order is
         checked on the zone occupancy of whole bodies too. ``moving_only``: count only
         committed cars that are not told to stop (``C_SLOW``); ``horizon_s``: only
-        occupancies that overlap within this of ``now`` [s].
+        occupancies that overlap within this of ``now`` [s]; ``crossing_only``: only cars
+        whose bodies cross or merge with this one's in the zone (:meth:`_bodies_meet`:
+        opposing traffic and followers pass), else any body in the zone.
         """
         mine = self._occupancy(points, car.length)
         if mine is None:
             return None
+        swept: FloatArray | None = None
         headway = self.config.headway_s
         for vehicle in self.table:
             other = self._cars.get(vehicle)
@@ -558,8 +595,16 @@ class RsuCore:
                 continue
             overlaps = mine[0] < theirs[1] + headway and theirs[0] < mine[1] + headway
             soon = max(mine[0], theirs[0]) <= now + horizon_s  # the later entry
-            if overlaps and soon and (other.mode == Mode.C_FAST or self._committed(other)):
-                return vehicle
+            if not (overlaps and soon):
+                continue
+            if not (other.mode == Mode.C_FAST or self._committed(other)):
+                continue
+            if crossing_only:
+                if swept is None:
+                    swept = self._swept(points, car)
+                if not self._bodies_meet(car, points, swept, other, entry.points):
+                    continue
+            return vehicle
         return None
 
     def _zone_taken(self, car: _Car, points: FloatArray, now: float) -> bool:
@@ -574,7 +619,9 @@ class RsuCore:
         committed = self._committed(car, points)
         cfg = self.config
         horizon = cfg.t_collision_s if car.mode == Mode.AUTO else cfg.t_free_s
-        clash = self._order_clash(car, points, now, moving_only=committed, horizon_s=horizon)
+        clash = self._order_clash(
+            car, points, now, moving_only=committed, horizon_s=horizon, crossing_only=True
+        )
         if clash is None:
             return False
         self.counters["zone_taken"] += 1
@@ -793,10 +840,16 @@ class RsuCore:
         """Compute (unless given), reserve and send the car's coordinated path."""
         if plan is None:
             firm = car.held_short and car.mode == Mode.C_SLOW
+            # a car committed itself waits only for moving bodies (as in _zone_taken): two
+            # committed cars told to stop must not each wait for the other's hold
+            moving_only = self._committed(car, path.points)
 
             def in_order(points: FloatArray) -> bool:
                 # a slot enters the zone: it keeps the crossing order as a C_FAST plan does
-                return self._order_clash(car, points, now) is None
+                clash = self._order_clash(
+                    car, points, now, moving_only=moving_only, crossing_only=True
+                )
+                return clash is None
 
             plan = self.velocity.plan(
                 car.vehicle, path, car.mode, now, self.table, firm=firm, admissible=in_order

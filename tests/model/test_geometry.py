@@ -12,6 +12,7 @@ from hypothesis import strategies as st
 from services.model.geometry import (
     PolygonSet,
     Polyline,
+    any_rects_overlap,
     convex_distance,
     convex_overlap,
     fillet_polyline,
@@ -331,3 +332,22 @@ def test_rect_distances_batch_matches_general_convex() -> None:
     assert np.array_equal(batch == 0.0, np.array([convex_overlap(a[k], b[k]) for k in range(n)]))
     assert 0 < int((batch == 0.0).sum()) < n
     assert rect_distances(np.zeros((0, 4, 2)), np.zeros((0, 4, 2))).shape == (0,)
+
+
+_coord = st.floats(-10.0, 10.0, allow_nan=False)
+_body = st.tuples(
+    _coord, _coord, st.floats(-math.pi, math.pi), st.floats(0.5, 6.0), st.floats(0.5, 3.0)
+)
+
+
+@settings(max_examples=60, deadline=None)
+@given(a=st.lists(_body, max_size=5), b=st.lists(_body, max_size=5))
+def test_any_rects_overlap_is_the_pairwise_test_over_all_pairs(
+    a: list[tuple[float, float, float, float, float]],
+    b: list[tuple[float, float, float, float, float]],
+) -> None:
+    fa = [footprint(*body) for body in a]
+    fb = [footprint(*body) for body in b]
+    expected = any(rects_overlap(p, q) for p in fa for q in fb)
+    got = any_rects_overlap(np.array(fa).reshape(-1, 4, 2), np.array(fb).reshape(-1, 4, 2))
+    assert got == expected

@@ -337,16 +337,13 @@ def test_cause7_no_slot_through_a_body_standing_in_the_zone() -> None:
     assert entry >= 10.0 + cfg.headway_s  # after A's hold, or never (a stop)
 
 
-def test_cause7_a_car_in_the_zone_is_not_released_while_a_committed_body_moves_in_it() -> None:
-    """B (C_SLOW) crawls in the box; A drives through the box in AUTO on the opposing lane.
-    The point rule sees no conflict (3.5 m apart), but a committed body in the zone within
-    a headway holds B (the zone rule is whole-zone and conservative: the point rule let
-    two turning bodies touch at a crawl). B is released once A is through."""
+def test_cause7_a_car_in_the_zone_is_not_released_into_a_body_across_its_lane() -> None:
+    """B (C_SLOW) crawls in the box; A (AUTO, not told to stop) stands in the box 3.55 m
+    from B's lane, its front 0.4 m from B's side. The point rule sees no conflict, even
+    with the release margins; the bodies' sweeps meet: B stays C_SLOW until A has gone."""
     cfg = config()
     core = RsuCore(cfg, listen_s=0.0)
-    south = -NORTH
-    a = straight((-1.75, 3.0), south, 3.0, 0.0)
-    core.on_message(0.0, message(FuturePath, "A", a, 3.0, south))
+    core.on_message(0.0, message(FuturePath, "A", held(-1.8, -1.75, 0.0), 0.0, EAST))
     assert core.mode_of("A") == Mode.AUTO
     b = straight((1.75, -3.0), NORTH, 0.5, 0.0)
     assert core.table.naive_conflicts("B", b, 0.0, cfg.t_free_s, (), 0.6, 0.2) == []
@@ -354,9 +351,24 @@ def test_cause7_a_car_in_the_zone_is_not_released_while_a_committed_body_moves_i
     core.on_message(0.0, message(AutonomousPath, "B", b, 0.5, NORTH, Mode.C_SLOW), "rsu-1")
     assert core.mode_of("B") == Mode.C_SLOW
     assert core.counters["zone_taken"] == 1
-    # A through the zone, its body too: B is released
-    a2 = straight((-1.75, -12.0), south, 3.0, 4.0)
-    core.on_message(4.0, message(FuturePath, "A", a2, 3.0, south, seq=2))
+    # A drives off east, through the box and out: B is released once A's body is past
+    a2 = straight((12.0, -1.75), EAST, 3.0, 4.0)
+    core.on_message(4.0, message(FuturePath, "A", a2, 3.0, EAST, seq=2))
     b2 = straight((1.75, -2.9), NORTH, 0.5, 4.0)
     core.on_message(4.0, message(AutonomousPath, "B", b2, 0.5, NORTH, Mode.C_SLOW, 2), "rsu-1")
     assert core.mode_of("B") == Mode.AUTO
+
+
+def test_cause7_opposing_traffic_is_not_held_by_a_body_in_the_zone() -> None:
+    """The same, A on the opposing lane (3.5 m away, bodies 1.7 m apart): B is released."""
+    cfg = config()
+    core = RsuCore(cfg, listen_s=0.0)
+    south = -NORTH
+    core.on_message(
+        0.0, message(FuturePath, "A", straight((-1.75, 3.0), south, 3.0, 0.0), 3.0, south)
+    )
+    b = straight((1.75, -3.0), NORTH, 0.5, 0.0)
+    core._cars["B"] = rsu_core._Car("B", mode=Mode.C_SLOW, x=1.75, y=-3.0, heading=NORTH)
+    core.on_message(0.0, message(AutonomousPath, "B", b, 0.5, NORTH, Mode.C_SLOW), "rsu-1")
+    assert core.mode_of("B") == Mode.AUTO
+    assert core.counters["zone_taken"] == 0
