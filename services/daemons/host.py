@@ -110,7 +110,7 @@ class CarHost:
         stores = [car.shell.trust for car in self.cars if car.shell.trust is not None]
         for store in stores[1:]:
             if store.root == stores[0].root:
-                store._certs = stores[0]._certs
+                store.share_certificates(stores[0])
 
     async def startup(self) -> None:
         """Open the cars' sessions one after another, in order: car ``k`` connects to cars

@@ -495,6 +495,14 @@ class TrustStore:
 
     # -- state
 
+    def share_certificates(self, other: TrustStore) -> None:
+        """Use ``other``'s cache of checked certificates from now on (stores of one
+        process under the same root: a certificate checked by one is known to all).
+        ``ValueError`` for another root: its certificates prove nothing here."""
+        if other.root != self.root:
+            raise ValueError("certificates are shared only between stores of one root")
+        self._certs = other._certs
+
     def begin_run(self, run_id: str | None) -> None:
         """Expect messages of run ``run_id`` from now on; forget the replay windows."""
         self.run = run_tag(run_id)

@@ -12,6 +12,7 @@ import pytest
 
 from protocol import encode
 from protocol.auth import seal
+from protocol.messages import FORMAT_VERSION
 from services.bench.flood import _fake_path
 from services.edge.transport import (
     V2X_QOS,
@@ -35,7 +36,7 @@ class Clock:
 
 def payload(kind: int, tag: int = 0) -> bytes:
     """A datagram-looking payload: magic, version, kind, flags (unsigned), then a tag."""
-    return bytes((0xCB, 2, kind, 0)) + tag.to_bytes(4, "little")
+    return bytes((0xCB, FORMAT_VERSION, kind, 0)) + tag.to_bytes(4, "little")
 
 
 async def settle(rounds: int = 50) -> None:

@@ -249,3 +249,22 @@ def test_hostile_signed_datagrams_only_ever_refuse(pos: int, flip: int, cut: int
     with pytest.raises(Refused):
         store.verify_datagram(bytes(data), message)
     assert store.refused == 1
+
+
+def test_stores_of_one_root_share_their_checked_certificates(
+    authority: Authority, tmp_path: Path
+) -> None:
+    """A host's cars share one certificate cache: a digest-signed datagram verifies at
+    once in a store that never saw the signer's certificate itself."""
+    first, second = store_for(authority), store_for(authority)
+    second.share_certificates(first)
+    signer = Signer(authority.credentials("rsu1"), run=run_tag("run-1"))
+    first.verify_datagram(*signed(signer, command("rsu1", 1)))  # carries the certificate
+    data, message = signed(signer, command("rsu1", 2))  # digest form
+    assert second.verify_datagram(data, message).subject == "rsu1"
+    alone = store_for(authority)
+    with pytest.raises(Refused, match="unknown_key"):
+        alone.verify_datagram(data, message)
+    other = Authority.init(tmp_path / "other-pki")
+    with pytest.raises(ValueError, match="one root"):
+        TrustStore(other.root_public).share_certificates(first)
