@@ -6,10 +6,11 @@ happened to find; locally the search is random and wider, which is where new fai
 are found (and then pinned with ``@example``).
 
 Serial tests: ``make test`` runs the pure tests in parallel (pytest-xdist), then the
-``serial`` ones one at a time. A test is serial when it is marked ``daemons``, ``lab`` or
-``packaging``, or lives where tests use real time, sockets or processes
-(:data:`SERIAL_PATHS`): sharing the CPU with another test would make their timing, not the
-code, decide the result."""
+``serial`` ones one at a time. A test is serial when it is marked ``daemons`` or ``lab``,
+or lives where tests use real time, sockets or processes (:data:`SERIAL_PATHS`): sharing
+the CPU with another test would make their timing, not the code, decide the result. The
+``packaging`` test (a wheel built and installed in a fresh venv) keeps no time: it runs in
+the parallel pass."""
 
 from __future__ import annotations
 
@@ -26,7 +27,7 @@ if os.environ.get("CI"):
 _TESTS = Path(__file__).resolve().parent
 SERIAL_PATHS = ("bench", "daemons", "deploy", "edge", "security", "supervise", "view")
 """Folders under tests/ whose tests are all serial."""
-SERIAL_MARKS = ("daemons", "lab", "packaging")
+SERIAL_MARKS = ("daemons", "lab")
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:

@@ -105,6 +105,28 @@ class _Coordinated:
     last_path_at: float = -np.inf
     target_s: FloatArray | None = None
     target_v: FloatArray | None = None
+    hold_s: float = np.inf
+    """Arc length [m] of a stop inside the coordinated path (a slot's stop-and-go), else inf."""
+    hold_until: float = -np.inf
+    """Run time [s] at which the path leaves that stop: targets beyond it count only then."""
+
+
+def interior_hold(s: FloatArray, points: FloatArray) -> tuple[float, float]:
+    """The first stop of a coordinated path that the path leaves again: its arc length
+    ``s`` [m] and the time [s] of its last held point; ``(inf, -inf)`` when the path holds
+    only at its end (or never). A path's points are followed by arc length; a slot's
+    stop-and-go waits in time, which arc length alone does not show (issue 12: cars crept
+    through the wait at 0.2 m/s, into the box)."""
+    n = points.shape[0]
+    if n < 3:
+        return np.inf, -np.inf
+    same = np.all(np.abs(np.diff(points[:, :2], axis=0)) <= 1e-6, axis=1)
+    moved = np.flatnonzero(~same)
+    for i in np.flatnonzero(same):
+        later = moved[moved > i]
+        if later.size:
+            return float(s[i]), float(points[int(later[0]), 2])
+    return np.inf, -np.inf
 
 
 @dataclass(slots=True)
@@ -266,6 +288,7 @@ class VehicleAgent:
                 c.since = now
                 c.last_path_at = now  # the timeout counts from the initiation
                 c.target_s = c.target_v = None
+                c.hold_s, c.hold_until = np.inf, -np.inf
                 # the new owner (owner_refusal let only the next intersection's RSU here)
                 c.rsu = rsu
                 reach = None if rsu is None else self._reach(rsu)
@@ -280,6 +303,7 @@ class VehicleAgent:
                 c.rsu = None
                 c.exit_s = np.inf
                 c.target_s = c.target_v = None
+                c.hold_s, c.hold_until = np.inf, -np.inf
 
     def _follow(self, now: float, path: CoordinatedPath) -> None:
         c = self.coordination
@@ -290,6 +314,7 @@ class VehicleAgent:
         order = np.argsort(s, kind="stable")
         c.target_s = np.asarray(s[order], dtype=np.float64)
         c.target_v = np.asarray(path.speeds[order], dtype=np.float64)
+        c.hold_s, c.hold_until = interior_hold(s, pts)
         c.last_path_at = now
         self._count("cp_followed")
 
@@ -328,10 +353,14 @@ class VehicleAgent:
             autonomous = self.planner.plan(
                 now, ego, sensed, {}, Coordination(lift_caution=True, skip_yield=True)
             )
+            target_v = c.target_v
+            if target_v is not None and c.target_s is not None and now < c.hold_until:
+                # a slot's wait: nothing past its stop until the path leaves it
+                target_v = np.where(c.target_s > c.hold_s + 1e-6, 0.0, target_v)
             coordination = Coordination(
                 lift_caution=c.mode is Mode.C_FAST,
                 target_s=c.target_s,
-                target_v=c.target_v,
+                target_v=target_v,
                 skip_yield=c.target_v is not None,
             )
             plan = self.planner.plan(now, ego, sensed, fps, coordination)

@@ -20,7 +20,7 @@ from services.model.scenario import Scenario
 from services.model.types import Policy
 from services.rsu.config import rsu_config
 from services.rsu.core import RsuCore
-from services.vehicle.agent import VehicleAgent, vehicle_agent
+from services.vehicle.agent import VehicleAgent, interior_hold, vehicle_agent
 from services.vehicle.planner import Reason
 
 
@@ -122,3 +122,36 @@ def test_pair_with_a_real_rsu_core_in_memory(paper: Scenario) -> None:
     assert rsu.mode_of("A") is Mode.C_FAST
     assert agent.counters["cp_followed"] > 10
     assert agent.last_plan is not None and agent.last_plan.reason is not Reason.CAUTION
+
+
+def test_interior_hold_is_found_and_an_end_hold_is_not() -> None:
+    moving = np.column_stack([np.arange(5.0), np.zeros(5), np.arange(5.0)])
+    assert interior_hold(moving[:, 0], moving) == (np.inf, -np.inf)
+    end_hold = np.vstack([moving, [[4.0, 0.0, 7.0], [4.0, 0.0, 9.0]]])
+    assert interior_hold(end_hold[:, 0], end_hold) == (np.inf, -np.inf)
+    wait = np.array([[0, 0, 0], [1, 0, 1], [1, 0, 2], [1, 0, 5], [2, 0, 6], [3, 0, 7.0]])
+    assert interior_hold(wait[:, 0].astype(float), wait.astype(float)) == (1.0, 5.0)
+
+
+def test_a_slot_stop_and_go_waits_at_its_stop_until_the_path_leaves_it(paper: Scenario) -> None:
+    """A coordinated path that holds where the car stands until 3 s, then drives on (a
+    slot's stop-and-go): followed by arc length alone the car crept on at once, towards the
+    zone; it waits until 3 s, then goes."""
+    agent = vehicle_agent(paper, "A", v2x=True)
+    here = truth(paper, "A", 120.0, 0.0, 0.0)
+    agent.tick(0.0, here, [])
+    agent.on_message(0.0, command("A", Command.INITIATE, Mode.C_SLOW, 0.0), "rsu1")
+    x0, y0 = here.x, here.y
+    hold = [[x0, y0, t] for t in (0.0, 1.0, 2.0, 3.0)]
+    d = np.arange(1.0, 41.0)
+    go_t = 3.0 + np.sqrt(2.0 * d / 1.5)  # from rest at 1.5 m/s²
+    go = np.column_stack([x0 + d, np.full_like(d, y0), go_t])
+    pts = np.vstack([hold, go])
+    speeds = np.concatenate([np.zeros(4), np.sqrt(2.0 * 1.5 * d)])
+    cp = CoordinatedPath(Header("rsu1", 2, 0), "A", Mode.C_SLOW, pts, speeds)
+    agent.on_message(0.0, decode(encode(cp)), "rsu1")
+    waiting = agent.tick(0.1, truth(paper, "A", 120.0, 0.0, 0.1), [])
+    assert float(waiting.plan.profile.v.max()) == 0.0
+    agent.on_message(2.9, decode(encode(cp)), "rsu1")  # the same path, still held to 3 s
+    going = agent.tick(3.0, truth(paper, "A", 120.0, 0.0, 3.0), [])
+    assert float(going.plan.profile.v.max()) > 1.0
