@@ -247,6 +247,9 @@ class RsuCore:
         self._next_beacon: float | None = None
         self._zone = paths.ConvexZone.of(config.conflict_zone)
         self._margins = (config.release_margin_m, config.release_margin_s)
+        # zone occupancy of each table entry, by the entry's points object (an entry's
+        # points are replaced, never changed): the crossing order checks every entry
+        self._occupancies: dict[str, tuple[FloatArray, float, tuple[float, float] | None]] = {}
 
     # -- queries --------------------------------------------------------------------------
 
@@ -278,6 +281,7 @@ class RsuCore:
     def forget(self, vehicle: str) -> bool:
         """Drop a car entirely (table entry, mode, pending command)."""
         known = self._cars.pop(vehicle, None) is not None
+        self._occupancies.pop(vehicle, None)
         return self.table.remove(vehicle) or known
 
     def listening(self, now: float) -> bool:
@@ -343,6 +347,8 @@ class RsuCore:
             self._apply_silent(vehicle)
         for vehicle in [v for v in self._cars if v not in self.table]:
             self._apply_silent(vehicle)
+        for vehicle in [v for v in self._occupancies if v not in self.table]:
+            del self._occupancies[vehicle]
         repeat = self.config.command_repeat_s
         for car in self._cars.values():
             pending = car.pending
@@ -476,6 +482,17 @@ class RsuCore:
         )
         return not found
 
+    def _entry_occupancy(
+        self, vehicle: str, points: FloatArray, length: float
+    ) -> tuple[float, float] | None:
+        """:meth:`_occupancy` of a table entry, computed once per entry."""
+        hit = self._occupancies.get(vehicle)
+        if hit is not None and hit[0] is points and hit[1] == length:
+            return hit[2]
+        occupancy = self._occupancy(points, length)
+        self._occupancies[vehicle] = (points, length, occupancy)
+        return occupancy
+
     def _occupancy(self, points: FloatArray, length: float) -> tuple[float, float] | None:
         """When the car's body overlaps the conflict zone on this path: (first, last) [s].
 
@@ -590,7 +607,7 @@ class RsuCore:
             entry = self.table.get(vehicle)
             if vehicle == car.vehicle or other is None or entry is None:
                 continue
-            theirs = self._occupancy(entry.points, other.length)
+            theirs = self._entry_occupancy(vehicle, entry.points, other.length)
             if theirs is None or theirs[1] < now or (moving_only and other.mode == Mode.C_SLOW):
                 continue
             overlaps = mine[0] < theirs[1] + headway and theirs[0] < mine[1] + headway
