@@ -317,6 +317,12 @@ class IntersectionSpec(_Model):
     center: Point
     conflict_zone: PolygonPoints
     stop_line_offset_m: NonNegF = 5.0
+    priority_lanes: list[Id] = []
+    """Lanes of a priority road through this intersection: a car on another lane gives
+    way to a car on one of these that it knows only from its sensors (no future path:
+    a driver crosspath does not coordinate, who follows the road's priority, e.g. SUMO's
+    unconnected cars). Empty (the paper's blind intersection): no priority road, and
+    crosspath's own right of way holds for sensed cars too."""
 
     _convex = field_validator("conflict_zone")(_check_convex)
 
@@ -699,6 +705,14 @@ class Scenario:
             self._lanes[lane.id] = self._build_line(
                 f"lanes[{i}]", lane.points, lane.corner_radius_m
             )
+        for i, it in enumerate(sp.intersections):
+            for k, lane_id in enumerate(it.priority_lanes):
+                if lane_id not in self._lanes:
+                    known = ", ".join(sorted(self._lanes)) or "none"
+                    raise self._err(
+                        f"intersections[{i}].priority_lanes[{k}]",
+                        f"unknown lane {lane_id!r} (known: {known})",
+                    )
         for i, rs in enumerate(sp.routes):
             self._routes[rs.id] = self._build_line(f"routes[{i}]", rs.points, rs.corner_radius_m)
 

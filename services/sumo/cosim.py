@@ -53,7 +53,17 @@ Decisions where the issue is silent:
   share connected.
 - The run ends when SUMO has no vehicle left to run, or at ``max_sim_s``.
 
-In-process only: the daemons mode (SUMO as the world process over Zenoh) is not built.
+Two radios, one loop: :class:`Cosimulation` runs the SUMO loop, the agents, the physics
+and the result, and its radio and pacing are a few hooks (``_open_radio``, ``_pace``,
+``_deliver``, ``_transmit``, ``_tick_rsus``, ``_close_radio``, ``_channel_params``,
+``_result_sections``). Here they are the in-process ones: the seeded ``MemoryChannel``
+and the ``RsuCore`` of each junction in this process, as fast as SUMO goes (``harness``
+``in-process``). With ``CosimOptions.daemons`` (``crosspath sumo --daemons``),
+``services.sumo.daemons.DaemonsCosimulation`` overrides only those hooks: every RSU is
+a ``crosspath rsu`` daemon process, V2X travels over Zenoh, SUMO steps on the run clock
+at ``speed`` (``harness`` ``daemons``; that module says how the cars of the run are
+listed and how the daemons are started and stopped). ``services.sumo.run.cosimulate``
+picks the one the options ask for.
 """
 
 from __future__ import annotations
@@ -77,7 +87,6 @@ from protocol import DecodeError, decode, encode
 from protocol import keys as keyexpr
 from protocol.keys import Stream
 from protocol.messages import Message
-from services.edge.provenance import origin as find_origin
 from services.model.geometry import Polyline
 from services.model.kinematics import BodyState, Limits, TruthState, curve_speed_cap, step
 from services.model.results import (
@@ -102,8 +111,9 @@ from services.sumo.baseline import SUMO_RUN_ARGS, sumo_api
 from services.sumo.from_sumo import SumoNetwork, _Ids, _join, read_net, scenario_from_net
 from services.sumo.netgen import sumo_binary
 from services.vehicle.agent import AgentSpec, VehicleAgent
+from services.vehicle.agent import Outgoing as CarOutgoing
 
-__all__ = ["CosimOptions", "Cosimulation", "cosimulate"]
+__all__ = ["CosimOptions", "Cosimulation"]
 
 log = logging.getLogger("crosspath.sumo.cosim")
 
@@ -113,13 +123,21 @@ right of way inside a junction); its speed is exactly the one crosspath commands
 RUNOUT_EXTRA_M = 10.0
 NOT_CONNECTED = "SUMO"
 """Mode label of a car SUMO drives."""
+MAX_SPEED = 1000.0
+"""Largest run speed of the daemons mode (run seconds per wall second, as ``crosspath up``)."""
 
 
 @dataclass(frozen=True, slots=True)
 class CosimOptions:
     """One co-simulation. ``mode``/``policy`` take the enums or their names;
     ``connected_share`` a fraction 0..1; ``max_sim_s`` [s] > 0; ``rsus``: one RSU per
-    junction (rsu mode); ``sumo_args`` extra options for SUMO."""
+    junction (rsu mode); ``sumo_args`` extra options for SUMO. ``daemons``: the RSUs as
+    daemons over Zenoh (``services.sumo.daemons``), at ``speed`` run seconds per wall
+    second (0 < speed <= 1000), run time 0 ``start_delay_s`` [wall s, 0..60] after the
+    start, logs and keys in ``run_dir`` (default ``results/sumo/<time>-<id>``), V2X
+    unsigned when ``insecure``; ``channel`` must then inject no loss (the network is
+    real). ``speed``, ``run_dir``, ``insecure``, ``start_delay_s`` only apply to the
+    daemons mode."""
 
     mode: RunMode = RunMode.RSU
     policy: Policy = Policy.PAPER
@@ -129,6 +147,11 @@ class CosimOptions:
     max_sim_s: float = 3600.0
     rsus: bool = True
     sumo_args: tuple[str, ...] = ()
+    daemons: bool = False
+    speed: float = 1.0
+    run_dir: Path | None = None
+    insecure: bool = False
+    start_delay_s: float = 1.0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "mode", parse_mode(self.mode))
@@ -148,6 +171,19 @@ class CosimOptions:
             raise ValueError(f"max_sim_s must be a finite number > 0, got {m!r}")
         if not isinstance(self.channel, ChannelModel):
             raise TypeError(f"channel must be a ChannelModel, got {self.channel!r}")
+        sp = self.speed
+        if isinstance(sp, bool) or not isinstance(sp, int | float) or not 0 < sp <= MAX_SPEED:
+            raise ValueError(f"speed must be a number in (0, {MAX_SPEED:g}], got {sp!r}")
+        d = self.start_delay_s
+        if isinstance(d, bool) or not isinstance(d, int | float) or not 0 <= d <= 60:
+            raise ValueError(f"start_delay_s must be a number within 0..60 [s], got {d!r}")
+        if self.run_dir is not None:
+            object.__setattr__(self, "run_dir", Path(self.run_dir))
+        if self.daemons and self.channel.loss > 0:
+            raise ValueError(
+                "loss is injected by the in-process channel only; the daemons run over a "
+                "real network (use the network lab to inject loss)"
+            )
 
 
 @dataclass(slots=True)
@@ -226,6 +262,8 @@ class Cosimulation:
     )
     _lane_len: dict[str, float] = field(init=False, default_factory=dict)
     _api: ModuleType | None = field(init=False, default=None)
+    _now: float = field(init=False, default=0.0)
+    """Run time of SUMO's latest step [s]."""
 
     def __post_init__(self) -> None:
         for p in (self.net_path, self.routes_path):
@@ -338,7 +376,7 @@ class Cosimulation:
     def _depart(self, sid: str, now: float) -> None:
         api = self.api
         o = self.options
-        cid = self._ids(sid)
+        cid = self._car_id(sid)
         self._by_sumo[sid] = cid
         lane = str(api.vehicle.getLaneID(sid))
         edges = [str(e) for e in api.vehicle.getRoute(sid)]
@@ -346,7 +384,7 @@ class Cosimulation:
         width = float(api.vehicle.getWidth(sid))
         limits = self._limits(sid)
         lanes = self._lane_path(lane, edges)
-        connected = _draw_connected(o.seed, sid, o.connected_share)
+        connected = _draw_connected(o.seed, sid, o.connected_share) and self._may_connect(cid)
         if lanes is None:
             # a lane change needed (or an odd lane): SUMO drives it; its route for the
             # metrics is the lane it is on
@@ -417,9 +455,10 @@ class Cosimulation:
             width=car.width,
         )
 
-    def _start(self, tripinfo: Path) -> None:
+    def _open_sumo(self, label: str, *extra: str) -> ModuleType:
+        """Start SUMO on the network and demand at the physics step with ``extra``
+        options (then the seed and ``sumo_args``); its API module."""
         api = sumo_api()
-        step_s = self.base.params.physics_dt_s
         cmd = [
             str(sumo_binary("sumo")),
             "-n",
@@ -427,7 +466,21 @@ class Cosimulation:
             "-r",
             str(self.routes_path),
             "--step-length",
-            f"{step_s:g}",
+            f"{self.base.params.physics_dt_s:g}",
+            *extra,
+            "--seed",
+            str(self.options.seed),
+            *self.options.sumo_args,
+        ]
+        if api.__name__ == "traci":
+            api.start(cmd, label=f"{label}-{id(self)}")
+        else:
+            api.start(cmd)
+        return api
+
+    def _start(self, tripinfo: Path) -> None:
+        self._api = self._open_sumo(
+            "cosim",
             "--step-method.ballistic",
             "true",
             "--tripinfo-output",
@@ -435,17 +488,42 @@ class Cosimulation:
             *SUMO_RUN_ARGS,
             "--collision.mingap-factor",
             "0",
-            "--seed",
-            str(self.options.seed),
-            *self.options.sumo_args,
-        ]
-        if api.__name__ == "traci":
-            api.start(cmd, label=f"cosim-{id(self)}")
-        else:
-            api.start(cmd)
-        self._api = api
+        )
 
-    # ------------------------------------------------------------------ V2X
+    # ------------------------------------------------------------------ radio and pacing
+    # The hooks below are the in-process radio (the MemoryChannel and the RsuCores of
+    # this process) and its pacing (none: as fast as SUMO goes). The daemons mode
+    # (``services.sumo.daemons``) overrides exactly these; the loop, the physics and
+    # the result are shared.
+    harness = "in-process"
+
+    def _car_id(self, sumo_id: str) -> str:
+        """The crosspath id of a SUMO vehicle departing now."""
+        return self._ids(sumo_id)
+
+    def _may_connect(self, cid: str) -> bool:
+        """Whether car ``cid`` (drawn connected) may get an agent."""
+        return True
+
+    def _open_radio(self) -> None:
+        """Before SUMO starts."""
+
+    def _close_radio(self) -> None:
+        """After SUMO closed (also after an error)."""
+
+    def _pace(self, now: float) -> None:
+        """Wait until run time ``now`` [s] has come (after SUMO's step to ``now``)."""
+
+    def _channel_params(self) -> ChannelParams:
+        ch = self.options.channel
+        return ChannelParams(
+            kind="memory", loss=ch.loss, latency_s=ch.latency_s, jitter_s=ch.jitter_s
+        )
+
+    def _result_sections(self, sim_s: float) -> dict[str, Any]:
+        """The optional fields of the run result this radio fills in."""
+        return {"loss": self.options.channel.loss}
+
     def _send(self, now: float, key: str, message: Message, receivers: list[str]) -> None:
         self.channel.send(now, key, encode(message), receivers)
 
@@ -474,64 +552,85 @@ class Cosimulation:
             if car is not None and car.agent is not None and receiver in self.present:
                 car.agent.on_message(now, message, parsed.rsu)
 
+    def _transmit(self, now: float, cid: str, out: CarOutgoing) -> None:
+        """Send one of car ``cid``'s outbound messages."""
+        if out.stream is Stream.FP:
+            receivers = [c for c in self._listeners() if c != cid] + list(self.rsus)
+            self._send(now, keyexpr.future_path(cid), out.message, receivers)
+        elif out.stream is Stream.AP and out.rsu in self.rsus:
+            self._send(now, keyexpr.autonomous_path(out.rsu, cid), out.message, [out.rsu])
+
+    def _tick_rsus(self, now: float) -> None:
+        """The RSUs' planning step (after the cars')."""
+        for rid, rsu in self.rsus.items():
+            for og in rsu.tick(now):
+                self._send_rsu(now, rid, og)
+
     # ------------------------------------------------------------------ loop
     def run(self) -> RunResult:
         """Run SUMO to the end with crosspath driving the connected cars; the result."""
         p = self.base.params
-        o = self.options
         dt = p.physics_dt_s
         plan_every = max(round(p.physics_hz / p.planning_hz), 1)
         wall0 = time.perf_counter()
+        reasons: dict[str, str] = {}
+        now = 0.0
         with tempfile.TemporaryDirectory(prefix="crosspath-cosim-") as tmp:
             tripinfo = Path(tmp) / "tripinfo.xml"
-            self._start(tripinfo)
-            api = self.api
-            reasons: dict[str, str] = {}
-            now = 0.0
-            k = 0
             try:
-                while True:
-                    api.simulationStep()
-                    now = float(api.simulation.getTime())
-                    for sid in api.simulation.getArrivedIDList():
-                        cid = self._by_sumo.get(str(sid))
-                        if cid is not None:
-                            self.cars[cid].arrived_s = now
-                            self.present.pop(cid, None)
-                    for sid in api.simulation.getDepartedIDList():
-                        self._depart(str(sid), now)
-                    for c in api.simulation.getCollisions():
-                        a, b = str(c.collider), str(c.victim)
-                        self.sumo_pairs.add((min(a, b), max(a, b)))
-                    truths = {cid: self._truth(self.cars[cid], now) for cid in self.present}
-                    self._deliver(now)
-                    if k % plan_every == 0:
-                        self._plan(now, truths, reasons)
-                    modes = {
-                        cid: (
-                            NOT_CONNECTED
-                            if (agent := self.cars[cid].agent) is None
-                            else agent.mode.name
-                        )
-                        for cid in truths
-                    }
-                    self.steps.append(
-                        (
-                            now,
-                            list(truths.values()),
-                            modes,
-                            {c: reasons.get(c, NOT_CONNECTED) for c in truths},
-                        )
-                    )
-                    if now >= o.max_sim_s - 1e-9 or api.simulation.getMinExpectedNumber() <= 0:
-                        break
-                    self._drive(truths, dt)
-                    k += 1
+                self._open_radio()
+                self._start(tripinfo)
+                api = self.api
+                try:
+                    self._loop(api, dt, plan_every, reasons)
+                finally:
+                    now = self._now
+                    api.close()
+                    self._api = None
             finally:
-                api.close()
-                self._api = None
+                self._close_radio()
             trips = _tripinfo(tripinfo)
         return self._result(now, time.perf_counter() - wall0, trips)
+
+    def _loop(self, api: ModuleType, dt: float, plan_every: int, reasons: dict[str, str]) -> None:
+        """SUMO steps until no vehicle is left or ``max_sim_s``."""
+        o = self.options
+        k = 0
+        while True:
+            api.simulationStep()
+            now = float(api.simulation.getTime())
+            self._now = now
+            self._pace(now)
+            for sid in api.simulation.getArrivedIDList():
+                cid = self._by_sumo.get(str(sid))
+                if cid is not None:
+                    self.cars[cid].arrived_s = now
+                    self.present.pop(cid, None)
+            for sid in api.simulation.getDepartedIDList():
+                self._depart(str(sid), now)
+            for c in api.simulation.getCollisions():
+                a, b = str(c.collider), str(c.victim)
+                self.sumo_pairs.add((min(a, b), max(a, b)))
+            truths = {cid: self._truth(self.cars[cid], now) for cid in self.present}
+            self._deliver(now)
+            if k % plan_every == 0:
+                self._plan(now, truths, reasons)
+            modes = {
+                cid: (NOT_CONNECTED if (agent := self.cars[cid].agent) is None else agent.mode.name)
+                for cid in truths
+            }
+            self.steps.append(
+                (
+                    now,
+                    list(truths.values()),
+                    modes,
+                    {c: reasons.get(c, NOT_CONNECTED) for c in truths},
+                )
+            )
+            if now >= o.max_sim_s - 1e-9 or api.simulation.getMinExpectedNumber() <= 0:
+                break
+            self._drive(truths, dt)
+            k += 1
 
     def _plan(self, now: float, truths: dict[str, TruthState], reasons: dict[str, str]) -> None:
         params = self.base.params
@@ -545,14 +644,8 @@ class Cosimulation:
             result = agent.tick(now, ego, sensed)
             reasons[cid] = result.plan.reason.value
             for out in result.outbound:
-                if out.stream is Stream.FP:
-                    receivers = [c for c in self._listeners() if c != cid] + list(self.rsus)
-                    self._send(now, keyexpr.future_path(cid), out.message, receivers)
-                elif out.stream is Stream.AP and out.rsu in self.rsus:
-                    self._send(now, keyexpr.autonomous_path(out.rsu, cid), out.message, [out.rsu])
-        for rid, rsu in self.rsus.items():
-            for og in rsu.tick(now):
-                self._send_rsu(now, rid, og)
+                self._transmit(now, cid, out)
+        self._tick_rsus(now)
 
     def _drive(self, truths: dict[str, TruthState], dt: float) -> None:
         """Command each connected car's speed for the next SUMO step."""
@@ -644,12 +737,7 @@ class Cosimulation:
                 _fin(sum(v.stops for v in vehicles.values()) / len(vehicles)) if vehicles else None
             ),
         )
-        channel = ChannelParams(
-            kind="memory",
-            loss=o.channel.loss,
-            latency_s=o.channel.latency_s,
-            jitter_s=o.channel.jitter_s,
-        )
+        channel = self._channel_params()
         sumo = SumoSection(
             net=str(self.net_path),
             routes=str(self.routes_path),
@@ -669,11 +757,11 @@ class Cosimulation:
             wall_s=wall_s,
             scenario=self.base.name,
             start_times={cid: c.arrival_s for cid, c in self.cars.items()},
-            harness="in-process",
+            harness=self.harness,
             provenance=provenance(self.base, self.origin, channel, o.mode, o.policy),
-            loss=o.channel.loss,
             summary=summary,
             sumo=sumo,
+            **self._result_sections(sim_s),
         )
         return result.updated(
             vehicles=vehicles,
@@ -699,19 +787,3 @@ def _tripinfo(path: Path) -> dict[str, tuple[float, float]]:
         el.get("id", ""): (float(el.get("timeLoss", "nan")), float(el.get("departDelay", "nan")))
         for el in root.iter("tripinfo")
     }
-
-
-def cosimulate(
-    net: str | Path,
-    routes: str | Path,
-    options: CosimOptions | None = None,
-) -> RunResult:
-    """One co-simulation of the SUMO network ``net`` and demand ``routes`` (module
-    docstring); the run result with its ``sumo`` section (its provenance hashes the
-    network file). ``ValueError`` for a missing file or a network crosspath cannot
-    read (``SumoNetError``); ``SumoNotFound`` without SUMO."""
-    net_path, routes_path = Path(net), Path(routes)
-    sim = Cosimulation(
-        net_path, routes_path, options or CosimOptions(), origin=find_origin(net_path)
-    )
-    return sim.run()

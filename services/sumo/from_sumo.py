@@ -21,11 +21,18 @@ Reads the ``.net.xml`` with the standard library (no SUMO needed) and builds:
 - **cars**: one ``[[vehicles]]`` per route, started ``stagger_s`` apart in route
   order, or with ``vehicles_per_hour`` one ``[[flows]]`` per route for ``flow_end_s``;
 - **RSUs**: one per intersection at its centre (coverage ``rsu_coverage_m``), unless
-  ``rsus=False``; ``[params].v_max_mps`` is the fastest normal lane's speed.
+  ``rsus=False``; ``[params].v_max_mps`` is the fastest normal lane's speed;
+- **priority roads**: at a ``priority`` junction whose incoming edges differ in SUMO
+  ``priority``, the lanes coming in on the highest are the intersection's
+  ``priority_lanes`` (the planner's rule 5: a connected car on a minor road gives way
+  to an unconnected car on them, as SUMO's drivers expect).
 
 SUMO ids become crosspath ids (``[A-Za-z0-9_-]{1,32}``): other characters turn into
-``_``, long ids are cut, clashes get ``-2``, ``-3``... Points closer than 1 cm to the
-previous one are dropped (SUMO repeats a point where two shapes meet). Decisions
+``_``, long ids are cut, clashes get ``-2``, ``-3``... Points closer than 0.5 m to the
+previous one are dropped: SUMO repeats a point where two shapes meet, and splits a
+turn at its internal junction a few decimetres further on, a kink that as a 0.2 m
+segment reads as a 0.5 m radius (a left turn then crawled through the junction at
+1 m/s; 3.75 m/s without it, netgen's 4-way). Decisions
 where the issue is silent: no buildings (a ``.net.xml`` has none); ``max_sim_s`` is
 the last start plus twice the longest route at half the speed limit plus 60 s.
 """
@@ -48,7 +55,9 @@ __all__ = ["SumoNetError", "SumoNetwork", "read_net", "scenario_from_net", "writ
 
 Point = tuple[float, float]
 _ID_BAD = re.compile(r"[^A-Za-z0-9_-]")
-_MIN_STEP_M = 0.01
+_MIN_STEP_M = 0.5
+PRIORITY_JUNCTIONS = ("priority", "priority_stop")
+"""SUMO junction types where a road has priority (its incoming edges' ``priority``)."""
 _MAX_PATHS_PER_ENTRY = 1000
 """Routes enumerated from one entry lane at most (a grid has very many)."""
 
@@ -75,6 +84,8 @@ class SumoNetwork:
     lane_edge: dict[str, str] = field(default_factory=dict)
     edge_to: dict[str, str] = field(default_factory=dict)
     junctions: dict[str, tuple[Point, list[Point]]] = field(default_factory=dict)
+    junction_type: dict[str, str] = field(default_factory=dict)
+    edge_priority: dict[str, int] = field(default_factory=dict)
     connections: list[Connection] = field(default_factory=list)
     internal_next: dict[str, str] = field(default_factory=dict)
 
@@ -113,6 +124,10 @@ def read_net(path: Path) -> SumoNetwork:
         internal = edge.get("function") == "internal"
         if not internal and edge.get("to"):
             net.edge_to[eid] = edge.get("to", "")
+            try:
+                net.edge_priority[eid] = int(edge.get("priority", "-1"))
+            except ValueError:
+                raise SumoNetError(f"{path}: edge {eid}: bad priority") from None
         for lane in edge.iter("lane"):
             lid = lane.get("id", "")
             net.lanes[lid] = _shape(lane.get("shape"), f"{path}: lane {lid}")
@@ -124,6 +139,7 @@ def read_net(path: Path) -> SumoNetwork:
         jid = j.get("id", "")
         centre = (float(j.get("x", "nan")), float(j.get("y", "nan")))
         net.junctions[jid] = (centre, _shape(j.get("shape"), f"{path}: junction {jid}"))
+        net.junction_type[jid] = j.get("type", "")
     for c in root.iter("connection"):
         f, t = c.get("from", ""), c.get("to", "")
         from_lane, to_lane = f"{f}_{c.get('fromLane')}", f"{t}_{c.get('toLane')}"
@@ -271,6 +287,24 @@ def _routes(net: SumoNetwork, max_routes: int) -> list[tuple[str, list[str]]]:
     return out
 
 
+def _priority_lanes(net: SumoNetwork, jid: str, lane_of_sumo: dict[str, str]) -> list[str]:
+    """The scenario lanes that come in to junction ``jid`` on its priority road: at a
+    ``priority`` (or ``priority_stop``) junction whose incoming edges differ in SUMO
+    priority, the lanes of the highest; else none."""
+    if net.junction_type.get(jid) not in PRIORITY_JUNCTIONS:
+        return []
+    incoming = {e: p for e, p in net.edge_priority.items() if net.edge_to.get(e) == jid}
+    if not incoming or max(incoming.values()) == min(incoming.values()):
+        return []
+    top = max(incoming.values())
+    out = {
+        lane_of_sumo[lid]
+        for lid, edge in net.lane_edge.items()
+        if incoming.get(edge) == top and lid in lane_of_sumo
+    }
+    return sorted(out)
+
+
 def scenario_from_net(
     path: Path,
     *,
@@ -298,10 +332,13 @@ def scenario_from_net(
         "description": f"from the SUMO network {path.name} (crosspath scenario from-sumo)",
     }
     lanes = []
+    lane_of_sumo: dict[str, str] = {}
     for chain in _lane_chains(net):
         pts = _join([net.lanes[lid] for lid in chain])
         if len(pts) >= 2:
-            lanes.append({"id": ids(chain[0]), "points": [list(p) for p in pts]})
+            lane_id = ids(chain[0])
+            lanes.append({"id": lane_id, "points": [list(p) for p in pts]})
+            lane_of_sumo.update((lid, lane_id) for lid in chain)
     doc["lanes"] = lanes
     inter_ids: dict[str, str] = {}
     intersections = []
@@ -316,6 +353,7 @@ def scenario_from_net(
                 "center": list(centre),
                 "conflict_zone": [list(p) for p in hull],
                 "stop_line_offset_m": stop_line_offset_m,
+                "priority_lanes": _priority_lanes(net, jid, lane_of_sumo),
             }
         )
     doc["intersections"] = intersections

@@ -34,8 +34,23 @@ the order DESIGN.md gives them:
    conflicts (commitment): estimates shift as both slow for the corner, and a
    swapped order makes a car stop twice or both go. Only a committed car
    overrides it, and a kept yield to a car that has stopped short of the zone
-   is re-judged, so two cars never wait for each other;
-4. emergency braking for any sensed car on the path, in every mode.
+   is re-judged, so two cars never wait for each other. Against a moving
+   oncoming car known only from the sensors, a car turning across its lane
+   gives way whatever the order: the oncoming car's route does not cross the
+   turner's lane, so it never counts the turner (``_decide``);
+4. emergency braking for any sensed car on the path, in every mode;
+5. a priority road (``priority_lanes`` of an intersection, e.g. from a SUMO
+   priority junction): between two cars that conflict there and neither of
+   which is committed, the one on the priority road goes first, before rule 3's
+   arrival order (drivers that crosspath does not coordinate, such as SUMO's
+   unconnected cars, keep that order, and a car cannot tell them from a
+   crosspath car whose radio it does not hear). In a coordinated mode, where
+   rule 3 is lifted, a car coming from a minor road still gives way to each car
+   on the priority road known only from its sensors, unless it is committed: no
+   RSU can order that one. (Found in the SUMO co-simulation with a share of the
+   cars connected: a connected car on the minor road took the way by rule 3, or
+   by its RSU, from an unconnected car on the priority road whose SUMO driver
+   did not give it.)
 
 Our interpretation where DESIGN.md is silent (also in the README):
 
@@ -104,6 +119,9 @@ order flipped half-way)."""
 ARRIVAL_FLOOR_MPS = 1.0
 """A slower or stopped car's stop-line arrival is estimated as if it crept on at this
 speed (``line_arrival``) [m/s]."""
+
+APPROACH_PROBE_M = 2.0
+"""The lane a route comes in on is the one it is on this far before the zone [m]."""
 
 COMMIT_MARGIN_M = 0.3
 """A car that cannot stop this far before the conflict zone braking at the emergency
@@ -196,6 +214,8 @@ class AutonomousPlanner:
     _zones: dict[str, FloatArray] = field(init=False)
     _crossing_lanes: dict[str, frozenset[str]] = field(init=False)
     _stop_offset: dict[str, float] = field(init=False)
+    _priority: dict[str, frozenset[str]] = field(init=False)
+    _approach: dict[str, str | None] = field(init=False)
     _order: dict[tuple[str, str], bool] = field(init=False, default_factory=dict)
     _next_order: dict[tuple[str, str], bool] = field(init=False, default_factory=dict)
 
@@ -212,6 +232,15 @@ class AutonomousPlanner:
             )
             for c in self.crossings
         }
+        # the priority roads at the intersections this route crosses (rule 5), and the
+        # lane it comes in on to each
+        self._priority = {}
+        self._approach = {}
+        for c in self.crossings:
+            major = frozenset(self.scenario.intersection(c.intersection).priority_lanes)
+            if major:
+                self._priority[c.intersection] = major
+            self._approach[c.intersection] = self._approach_lane(c)
 
     # ------------------------------------------------------------------ planning
     def plan(
@@ -265,16 +294,19 @@ class AutonomousPlanner:
         unyielded = self._combine(now, s, v0, constraints)
         yield_to: list[str] = []
         self._next_order = {}
-        if not coordination.skip_yield:
-            for crossing in self._crossings_ahead(s0):
+        for crossing in self._crossings_ahead(s0):
+            if coordination.skip_yield:
+                # coordinated: the RSU orders the cars it knows; not the priority road's
+                others = self._priority_targets(now, ego, crossing, sensed, future_paths)
+            else:
                 others = self._yield_targets(
                     now, ego, crossing, unyielded.profile, sensed, future_paths
                 )
-                if others:
-                    cap = self._stop_line_cap(s, s0, v0, crossing, soonest=True)
-                    if cap is not None:
-                        constraints.append(_Constraint(Reason.YIELD, cap, ",".join(others)))
-                        yield_to.extend(others)
+            if others:
+                cap = self._stop_line_cap(s, s0, v0, crossing, soonest=True)
+                if cap is not None:
+                    constraints.append(_Constraint(Reason.YIELD, cap, ",".join(others)))
+                    yield_to.extend(others)
         if not coordination.skip_yield:
             self._order = self._next_order
         if not yield_to:
@@ -485,7 +517,52 @@ class AutonomousPlanner:
             sensed_iv, arrival = found
             overlap = earliest.overlaps(sensed_iv, self.headway_s)
             moving = other.speed > self.params.creep_mps / 2.0
-            if self._decide(crossing, other.id, overlap, arrival, mine, moving, still):
+            if self._decide(crossing, other.id, overlap, arrival, mine, moving, still, True):
+                out.append(other.id)
+        return out
+
+    def _approach_lane(self, crossing: Crossing) -> str | None:
+        """The lane this route comes in on to ``crossing`` (just before its zone)."""
+        s = max(crossing.s_in - APPROACH_PROBE_M, 0.0)
+        x, y = self.route.point_at(s)
+        found = self.scenario.lane_of(x, y, self.route.heading_at(s))
+        return None if found is None else found[0]
+
+    def _major(self, crossing: Crossing, lane: str | None) -> bool:
+        """``lane`` is a priority road at ``crossing`` (rule 5)."""
+        major = self._priority.get(crossing.intersection)
+        return major is not None and lane is not None and lane in major
+
+    def _priority_targets(
+        self,
+        now: float,
+        ego: TruthState,
+        crossing: Crossing,
+        sensed: Sequence[TruthState],
+        future_paths: Mapping[str, FuturePath],
+    ) -> list[str]:
+        """Rule 5 in a coordinated mode: the cars known only from the sensors, on a
+        priority road this car comes to from a minor one, whose earliest zone occupancy
+        comes within the headway of this car's earliest: they go first, unless this car
+        is committed. No RSU can order such a driver, who keeps the road's priority."""
+        if crossing.intersection not in self._priority or self._major(
+            crossing, self._approach.get(crossing.intersection)
+        ):
+            return []
+        if ego.s - self.length / 2.0 > crossing.s_in:
+            return []  # already in the zone: go on
+        mine = self._own_arrival(now, ego, crossing)
+        if mine.committed:
+            return []
+        earliest = self._earliest_interval(now, ego.s, ego.speed, crossing, self.length)
+        out: list[str] = []
+        for other in sensed:
+            if other.id in future_paths:
+                continue
+            found = self._sensed_conflict(now, other, crossing)
+            if found is None or not self._major(crossing, found[1].lane):
+                continue
+            if earliest.overlaps(found[0], self.headway_s):
                 out.append(other.id)
         return out
 
@@ -498,6 +575,7 @@ class AutonomousPlanner:
         mine: _Arrival,
         moving: bool,
         still: bool = False,
+        sensed_only: bool = False,
     ) -> bool:
         """Yield to this car? The verdict is taken when the two first conflict and then
         kept (commitment), both ways, while the other stays a conflict here: estimated
@@ -511,13 +589,28 @@ class AutonomousPlanner:
         both see) and then judge the same standing facts, so they agree: a car that kept
         its right of way while it stood (waiting for a third car) and the car that
         re-judged its yield meanwhile went together into the zone (issue 12,
-        ``test_standalone_crossing_between_two_opposite_cars``)."""
+        ``test_standalone_crossing_between_two_opposite_cars``).
+
+        Against an oncoming car known only from the sensors (``sensed_only``: its lane is
+        the opposing one, which this route turns across), the other goes first while
+        either car moves: its own route does not cross this car's lane, so it cannot see
+        the conflict and will not give way (the left turn gives way to oncoming traffic;
+        found in the SUMO co-simulation with every car in ``standalone``, where the
+        turning car took the way by the tie-break and the oncoming car drove on). While
+        the oncoming car stands still, the usual order decides, so that two oncoming cars
+        turning across each other's lane do not wait for each other for ever, nor a turner
+        for a car that waits for a third."""
         key = (crossing.intersection, other_id)
         kept = self._order.get(key)
         if kept is None and not overlap:
             return False  # no conflict yet: no verdict
+        other_major, my_major = self._major(crossing, other.lane), self._major(crossing, mine.lane)
         if other.committed != mine.committed:
             first = other.committed
+        elif other_major != my_major:
+            first = other_major  # rule 5: the priority road first
+        elif sensed_only and moving and _oncoming(other, mine):
+            first = True
         elif kept is None or (kept and not moving) or (not kept and still):
             first = self._goes_first(other, mine, other_id)
         else:
@@ -543,7 +636,13 @@ class AutonomousPlanner:
         return other_id < self.vehicle_id
 
     def _arrival(
-        self, stamp: float, d_zone: float, speed: float, offset: float, heading: float
+        self,
+        stamp: float,
+        d_zone: float,
+        speed: float,
+        offset: float,
+        heading: float,
+        lane: str | None = None,
     ) -> _Arrival:
         """Arrival of a car whose centre was ``d_zone`` [m] before entering the (grown) zone
         at run time ``stamp`` [s] (now for this car and sensed ones, the send time of a
@@ -554,13 +653,15 @@ class AutonomousPlanner:
         d_line = d_zone - offset - ARRIVED_M
         t_line = stamp + line_arrival(d_line, speed, self.scenario.params.decel_comfort_mps2)
         committed = speed * speed / (2.0 * lim.decel_emergency) > d_zone - COMMIT_MARGIN_M
-        return _Arrival(t_line, committed and speed > 0.0, heading)
+        return _Arrival(t_line, committed and speed > 0.0, heading, lane)
 
     def _own_arrival(self, now: float, ego: TruthState, crossing: Crossing) -> _Arrival:
         d_zone = crossing.s_in - self.length / 2.0 - ego.s
         heading = self.route.heading_at(crossing.s_in)
         offset = self._stop_offset[crossing.intersection]
-        return self._arrival(now, d_zone, ego.speed, offset, heading)
+        return self._arrival(
+            now, d_zone, ego.speed, offset, heading, self._approach.get(crossing.intersection)
+        )
 
     def _fp_arrival(self, fp: FuturePath, zone: FloatArray, crossing: Crossing) -> _Arrival | None:
         """Arrival of a car known from its future path, or None when its path does not come
@@ -707,18 +808,26 @@ class AutonomousPlanner:
         lane = self.scenario.lane(lane_id)
         d_zone = c.s_in - length / 2.0 - s_other
         offset = self._stop_offset[crossing.intersection]
-        return c, s_other, self._arrival(stamp, d_zone, speed, offset, lane.heading_at(c.s_in))
+        arrival = self._arrival(stamp, d_zone, speed, offset, lane.heading_at(c.s_in), lane_id)
+        return c, s_other, arrival
+
+
+def _oncoming(other: _Arrival, mine: _Arrival) -> bool:
+    """The two cars enter the zone from opposite approaches (within 45° of opposite)."""
+    return abs(wrap_angle(other.heading - mine.heading)) > 3.0 * math.pi / 4.0
 
 
 @dataclass(frozen=True, slots=True)
 class _Arrival:
     """When a car reaches its stop line (``line_arrival`` from its state, added to the
     time of that state; the time of the state once past the line) [s, run time], whether
-    it is committed, and its heading entering the zone [rad]."""
+    it is committed, its heading entering the zone [rad], and the lane it comes in on
+    (None when not known: a future path off the lanes)."""
 
     t_line: float
     committed: bool
     heading: float
+    lane: str | None = None
 
 
 @dataclass(frozen=True, slots=True)

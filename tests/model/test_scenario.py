@@ -280,6 +280,13 @@ def _refused(text: str) -> ScenarioError:
             "vehicles[1].route",
             "unknown route 'r9'",
         ),
+        # a priority road on a lane that does not exist
+        (
+            "[[buildings]]",
+            'priority_lanes = ["r1"]\n\n[[buildings]]',
+            "intersections[0].priority_lanes[0]",
+            "unknown lane 'r1'",
+        ),
         # polygons
         (
             "polygon = [[8.0, 8.0], [20.0, 8.0], [20.0, 20.0], [8.0, 20.0]]",

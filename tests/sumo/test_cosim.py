@@ -17,9 +17,9 @@ from services.sumo.cosim import (
     Cosimulation,
     _draw_connected,
     _free_time_to_exit,
-    cosimulate,
 )
 from services.sumo.netgen import Control, VehicleTypeSpec, build_network, write_routes
+from services.sumo.run import cosimulate
 from tests.sumo.conftest import require_sumo
 
 # straight from every approach and a left turn from the west, two cars following on
@@ -143,6 +143,29 @@ def test_without_connected_cars_sumo_drives_all(four_way: tuple[Path, Path]) -> 
     assert r.all_finished and r.collisions == 0 and r.sumo.collisions == 0
     # SUMO's priority junction: the minor road (north-south) waits, delays are measured
     assert all(v.delay_s is not None for v in r.vehicles.values())
+
+
+# each collided or stranded a car before rule 5 (services.vehicle.planner): a connected
+# car on the minor road took the way from an unconnected one on the priority road
+MIXED = [
+    (RunMode.RSU, 0.5, 7),
+    (RunMode.STANDALONE, 0.3, 1),
+    (RunMode.FP_ONLY, 0.3, 1),
+    (RunMode.STANDALONE, 0.3, 2),
+]
+
+
+@pytest.mark.parametrize(("mode", "share", "seed"), MIXED)
+def test_mixed_traffic_keeps_the_priority_road(
+    four_way: tuple[Path, Path], mode: RunMode, share: float, seed: int
+) -> None:
+    net, routes = four_way
+    r = cosimulate(net, routes, CosimOptions(mode=mode, connected_share=share, seed=seed))
+    sumo = r.sumo
+    assert sumo is not None and 0 < sumo.connected < 7  # mixed: both kinds of driver
+    assert r.collisions == 0 and sumo.collisions == 0
+    assert r.all_finished
+    assert r.min_gap_m is not None and r.min_gap_m > 0.5
 
 
 def test_connected_draw_is_per_car_and_seeded() -> None:

@@ -58,6 +58,16 @@ def test_four_way_round_trip(short_nets: dict[Control, Path], tmp_path: Path) ->
     starts = [v.start_time_s for v in back.vehicles]
     assert all(isinstance(t, float) for t in starts)
     assert sorted(t for t in starts if isinstance(t, float)) == [3.0 * i for i in range(12)]
+    # netgen's priority road runs east-west (edge priority 2 against 1): its lanes, both ways
+    assert it.priority_lanes == ["e_in_0", "w_in_0"]
+
+
+@pytest.mark.parametrize("control", [Control.ALLWAY_STOP, Control.UNREGULATED])
+def test_no_priority_road_where_the_junction_has_none(
+    short_nets: dict[Control, Path], control: Control
+) -> None:
+    (it,) = scenario_from_net(short_nets[control]).intersections
+    assert it.priority_lanes == []
 
 
 def test_flows_instead_of_cars(short_nets: dict[Control, Path]) -> None:

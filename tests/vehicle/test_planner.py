@@ -9,11 +9,14 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from protocol.messages import FuturePath, Header, Mode
 from services.model.kinematics import TruthState
-from services.model.scenario import Scenario
-from services.vehicle.planner import AutonomousPlanner, Reason
+from services.model.scenario import Scenario, ScenarioFile, limits_from_params, load_scenario
+from services.vehicle.planner import AutonomousPlanner, Coordination, Reason
+from tests.vehicle.conftest import PAPER
 
 CENTER_S = 200.0
 
@@ -163,3 +166,141 @@ def test_emergency_stop_for_a_car_on_the_path(paper: Scenario) -> None:
     assert plan.reason is Reason.EMERGENCY
     stop = plan.profile.stop_s()
     assert stop is not None and stop < 125.0 - 4.5
+
+
+# --------------------------------------------------------------------------- rule 5
+# The paper's intersection with the east-west road (lanes eb, wb) as a priority road:
+# A (eastbound) is on it, B (northbound) comes from the minor road.
+
+
+def _priority(paper: Scenario) -> Scenario:
+    doc = paper.spec.model_dump()
+    doc["intersections"][0]["priority_lanes"] = ["eb", "wb"]
+    return Scenario(ScenarioFile.model_validate(doc), paper.source)
+
+
+def test_the_priority_road_goes_first_where_the_car_on_the_right_would(paper: Scenario) -> None:
+    sc = _priority(paper)
+    # the symmetric tie of test_yield_tie_goes_to_the_car_on_the_right: B comes from A's
+    # right and went first; on a priority road A does, and both agree
+    a = state(sc, "A", CENTER_S - 14.0, 3.0)
+    b = state(sc, "B", CENTER_S - 14.0, 3.0)
+    assert planner(sc, "A").plan(0.0, a, [b], {}).yielding_to == ()
+    assert planner(sc, "B").plan(0.0, b, [a], {}).yielding_to == ("A",)
+    # the earlier arrival at the stop line no longer counts against the priority road
+    line = planner(sc, "B").crossings[0].s_stop
+    b = state(sc, "B", line - 0.5, 1.0)
+    a = state(sc, "A", line - 12.0, 7.0)
+    assert planner(sc, "B").plan(0.0, b, [a], {}).yielding_to == ("A",)
+    assert planner(sc, "A").plan(0.0, a, [b], {}).yielding_to == ()
+
+
+def test_a_committed_car_from_the_minor_road_still_goes_first(paper: Scenario) -> None:
+    sc = _priority(paper)
+    pb = planner(sc, "B")
+    zone_in = pb.crossings[0].s_in - pb.length / 2.0
+    b = state(sc, "B", zone_in - 2.0, 10.0)  # 2 m from the zone at 10 m/s: cannot stop
+    a = state(sc, "A", CENTER_S - 20.0, 8.0)
+    assert planner(sc, "A").plan(0.0, a, [b], {}).yielding_to == ("B",)
+    assert pb.plan(0.0, b, [a], {}).yielding_to == ()
+
+
+def test_a_coordinated_car_gives_way_to_an_unconnected_car_on_the_priority_road(
+    paper: Scenario,
+) -> None:
+    sc = _priority(paper)
+    pb = planner(sc, "B")
+    b = state(sc, "B", CENTER_S - 25.0, 8.0)
+    a = state(sc, "A", CENTER_S - 24.0, 8.0)
+    fast = Coordination(lift_caution=True, skip_yield=True)
+    # known only from the sensors: no RSU orders it, B stops for it even in C_FAST
+    plan = pb.plan(0.0, b, [a], {}, fast)
+    assert plan.yielding_to == ("A",) and plan.reason is Reason.YIELD
+    # A car that shares its future path is the RSU's to order: no yield
+    assert pb.plan(0.0, b, [a], {"A": _fp_of(sc, a)}, fast).yielding_to == ()
+    # without a priority road, the coordinated car leaves sensed cars to its RSU
+    assert planner(paper, "B").plan(0.0, b, [a], {}, fast).yielding_to == ()
+    # and the car on the priority road never waits for the minor road's
+    assert planner(sc, "A").plan(0.0, a, [b], {}, fast).yielding_to == ()
+
+
+def _paper() -> Scenario:
+    return load_scenario(PAPER)
+
+
+def _fp_of(sc: Scenario, t: TruthState) -> FuturePath:
+    route = sc.route(sc.vehicle(t.id).route)
+    s = t.s + t.speed * np.arange(0.0, 10.0, 0.1)
+    xy = route.points_at(s)
+    pts = np.column_stack([xy, 0.0 + np.arange(0.0, 10.0, 0.1)])
+    return FuturePath(Header(t.id, 1, 0), t.x, t.y, t.speed, t.heading, 4.5, 1.8, Mode.AUTO, pts)
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    sa=st.floats(CENTER_S - 60.0, CENTER_S - 5.0),
+    sb=st.floats(CENTER_S - 60.0, CENTER_S - 5.0),
+    va=st.floats(0.0, 13.9),
+    vb=st.floats(0.0, 13.9),
+)
+def test_rule5_the_two_cars_agree(sa: float, sb: float, va: float, vb: float) -> None:
+    """Any two cars at a priority road, known to each other from the sensors only: never
+    both wait for each other, and the car on the priority road waits only for a car that
+    can no longer stop."""
+    sc = _priority(_paper())
+    pa, pb = planner(sc, "A"), planner(sc, "B")
+    a, b = state(sc, "A", sa, va), state(sc, "B", sb, vb)
+    a_waits = pa.plan(0.0, a, [b], {}).yielding_to == ("B",)
+    b_waits = pb.plan(0.0, b, [a], {}).yielding_to == ("A",)
+    assert not (a_waits and b_waits)
+    if a_waits:
+        crossing = pb.crossings[0]
+        assert pb._own_arrival(0.0, b, crossing).committed
+
+
+# ------------------------------------------------------------- oncoming, sensed only
+# The 4-way of four-way-flows: wn turns left from the west across the westbound lane,
+# ew drives straight on it, es turns left from the east across the eastbound lane.
+FLOWS = load_scenario(PAPER.parent / "four-way-flows.toml")
+
+
+def _route_planner(vid: str, route: str) -> AutonomousPlanner:
+    p = FLOWS.params
+    return AutonomousPlanner(
+        vehicle_id=vid,
+        scenario=FLOWS,
+        route_id=route,
+        goal_s=FLOWS.route(route).length,
+        length=4.5,
+        width=1.8,
+        limits=limits_from_params(p, None),
+        headway_s=p.headway_s,
+        sensor_range_m=p.sensor_range_m,
+    )
+
+
+def _on(planner_: AutonomousPlanner, s: float, v: float) -> TruthState:
+    route = planner_.route
+    x, y = route.point_at(s)
+    return TruthState(planner_.vehicle_id, 0.0, x, y, route.heading_at(s), v, 0.0, s, 4.5, 1.8)
+
+
+def test_a_left_turn_gives_way_to_an_oncoming_car_it_knows_only_from_its_sensors() -> None:
+    turner, straight = _route_planner("a-turner", "wn"), _route_planner("b-straight", "ew")
+    t = _on(turner, turner.crossings[0].s_stop, 0.0)  # waiting at its line, arrived first
+    o = _on(straight, straight.crossings[0].s_in - 25.0, 8.0)
+    # the oncoming car's route does not cross the turner's lane: it never gives way
+    assert straight.plan(0.0, o, [t], {}).yielding_to == ()
+    # so the turner does, though it reached its line first and has the lower id
+    assert turner.plan(0.0, t, [o], {}).yielding_to == ("b-straight",)
+
+
+def test_two_oncoming_left_turns_standing_at_their_lines_do_not_wait_for_each_other() -> None:
+    west, east = _route_planner("a-west", "wn"), _route_planner("b-east", "es")
+    w = _on(west, west.crossings[0].s_stop, 0.0)
+    e = _on(east, east.crossings[0].s_stop, 0.0)
+    waits = [
+        west.plan(0.0, w, [e], {}).yielding_to == ("b-east",),
+        east.plan(0.0, e, [w], {}).yielding_to == ("a-west",),
+    ]
+    assert waits.count(True) == 1
