@@ -592,8 +592,8 @@ class AutonomousPlanner:
         ``test_standalone_crossing_between_two_opposite_cars``).
 
         Against an oncoming car known only from the sensors (``sensed_only``: its lane is
-        the opposing one, which this route turns across), the other goes first while
-        either car moves: its own route does not cross this car's lane, so it cannot see
+        the opposing one, which this route turns across), the other goes first while it
+        moves: its own route does not cross this car's lane, so it cannot see
         the conflict and will not give way (the left turn gives way to oncoming traffic;
         found in the SUMO co-simulation with every car in ``standalone``, where the
         turning car took the way by the tie-break and the oncoming car drove on). While
