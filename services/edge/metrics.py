@@ -121,8 +121,8 @@ METRICS: Final[Mapping[str, str]] = {
     "crosspath_v2x_latency_seconds": "one-way V2X latency, generation to handling [wall s]",
     "crosspath_dropped_messages_total": (
         "messages dropped, by stream (V2X stream or subscription) and reason: malformed, "
-        "stale, refused (sender not in the run), rate_limited, coalesced (replaced by a "
-        "newer one before handled), overflow (inbox full)"
+        "stale, refused (sender not in the run), duplicate (a replayed copy), rate_limited, "
+        "coalesced (replaced by a newer one before handled), overflow (inbox full)"
     ),
     "crosspath_receive_offered_messages_total": "datagrams the network offered a subscription",
     "crosspath_receive_delivered_messages_total": "datagrams a subscription's handler took",
@@ -160,7 +160,7 @@ _RSU_ACTIONS: Final = {
 """RSU core counters exported as ``crosspath_rsu_actions_total{action}``."""
 
 _STREAM_FIELDS: Final = ("msgs_tx", "bytes_tx", "msgs_rx", "bytes_rx", "malformed", "dropped_stale")
-_RECEIVE_DROPS: Final = ("refused", "rate_limited", "coalesced", "overflow")
+_RECEIVE_DROPS: Final = ("refused", "duplicate", "rate_limited", "coalesced", "overflow")
 
 T = TypeVar("T")
 

@@ -192,6 +192,11 @@ future path's 10 Hz; scaled by the run's speed. Beyond it they are dropped and c
 V2X_BURST: Final = 25.0
 """Datagrams a V2X lane may deliver back to back before its rate applies."""
 
+V2X_DEDUPE: Final = 32
+"""Datagrams a V2X lane remembers to drop exact copies (replays) before they cost a
+token: 3.2 s of a 10 Hz sender, beyond the 2 s stale window. A replay flood of a
+sender's genuine datagrams could otherwise spend its rate and starve it (issue 13)."""
+
 PLUMBING_DEPTH: Final = 256
 """Plumbing messages queued per sender key (first in, first out; truth must not be
 coalesced); more push out the oldest (counted ``coalesced``)."""
@@ -559,7 +564,9 @@ class DaemonShell:
                 lambda: self._on_datagram(key, payload, stream, handler, ignore_vehicle),
             )
 
-        policy = self.receive.setdefault(str(stream), ReceivePolicy(admit=self._admits))
+        policy = self.receive.setdefault(
+            str(stream), ReceivePolicy(admit=self._admits, dedupe=V2X_DEDUPE)
+        )
         return self.transport.subscribe(keyexpr, on_datagram, policy)
 
     def _admits(self, key: str) -> bool:

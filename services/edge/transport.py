@@ -206,12 +206,21 @@ def keyexpr_matches(pattern: str, key: str) -> bool:
 # --------------------------------------------------------------------------- receive path
 
 
-_COUNTERS: Final = ("offered", "refused", "rate_limited", "coalesced", "overflow", "delivered")
+_COUNTERS: Final = (
+    "offered",
+    "refused",
+    "duplicate",
+    "rate_limited",
+    "coalesced",
+    "overflow",
+    "delivered",
+)
 
 
 class ReceiveStats:
     """What the inboxes of one subscription did (thread-safe): datagrams ``offered`` by the
-    network, ``refused`` by the admission check, ``rate_limited``, ``coalesced`` (replaced
+    network, ``refused`` by the admission check, ``duplicate`` (an exact copy of a recent
+    datagram of its lane: a replay), ``rate_limited``, ``coalesced`` (replaced
     by a newer one of the same lane before the loop took it), ``overflow`` (no room) and
     ``delivered``; the wall-second latency from arrival to the end of the handler; the most
     lanes (senders) and bytes ever queued at once. Its snapshot has a fixed size."""
@@ -290,7 +299,10 @@ class ReceivePolicy:
     and is fed by a token bucket of ``rate_hz`` [datagrams per wall s] and ``burst``
     (``rate_hz`` 0: unlimited); at most ``max_lanes`` lanes and ``max_bytes`` queued
     bytes, else the datagram is dropped (``overflow``); at most ``max_buckets`` rate
-    states, the least recently used evicted. The loop takes the lanes round robin, at
+    states, the least recently used evicted. With ``dedupe`` > 0, a lane remembers its last
+    ``dedupe`` datagrams and drops an exact copy of one before it costs a token
+    (``duplicate``): a replayer that repeats a sender's genuine (validly signed) datagrams
+    cannot spend that sender's rate and starve it. The loop takes the lanes round robin, at
     most ``batch`` datagrams or ``budget_s`` wall seconds per turn, then yields so that
     timers (the control loop's ticks) run on time. Fields may be changed while
     subscribed (the shell scales the rates with the run's speed).
@@ -303,20 +315,42 @@ class ReceivePolicy:
     max_lanes: int = 1024
     max_bytes: int = 4 * 1024 * 1024
     max_buckets: int = 4096
+    dedupe: int = 0
     batch: int = 64
     budget_s: float = 0.002
     admit: Admit | None = None
     stats: ReceiveStats = field(default_factory=ReceiveStats)
 
     def __post_init__(self) -> None:
-        for name in ("depth", "max_lanes", "max_bytes", "max_buckets", "batch"):
+        for name in ("depth", "max_lanes", "max_bytes", "max_buckets", "batch", "dedupe"):
             value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"{name} must be an int >= 1, got {value!r}")
+            low = 0 if name == "dedupe" else 1
+            if isinstance(value, bool) or not isinstance(value, int) or value < low:
+                raise ValueError(f"{name} must be an int >= {low}, got {value!r}")
         for name in ("rate_hz", "burst", "budget_s"):
             value = getattr(self, name)
             if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
                 raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
+
+
+class _Recent:
+    """The hashes of a lane's last datagrams, oldest first, and the same as a set."""
+
+    __slots__ = ("members", "order")
+
+    def __init__(self) -> None:
+        self.order: deque[int] = deque()
+        self.members: set[int] = set()
+
+    def seen(self, digest: int, depth: int) -> bool:
+        """True for a digest remembered; else remember it (forgetting beyond ``depth``)."""
+        if digest in self.members:
+            return True
+        self.order.append(digest)
+        self.members.add(digest)
+        while len(self.order) > depth:
+            self.members.discard(self.order.popleft())
+        return False
 
 
 class Inbox:
@@ -343,6 +377,7 @@ class Inbox:
         self._lock = threading.Lock()
         self._lanes: OrderedDict[str, deque[tuple[str, bytes, float]]] = OrderedDict()
         self._buckets: OrderedDict[str, list[float]] = OrderedDict()
+        self._recent: OrderedDict[str, _Recent] = OrderedDict()
         self._bytes = 0
         self._scheduled = False
 
@@ -355,6 +390,11 @@ class Inbox:
     def buckets(self) -> int:
         """Rate-limit states kept now."""
         return len(self._buckets)
+
+    @property
+    def remembered(self) -> int:
+        """Lanes whose recent datagrams are remembered now (``dedupe``)."""
+        return len(self._recent)
 
     @property
     def queued_bytes(self) -> int:
@@ -392,6 +432,21 @@ class Inbox:
         bucket[0] -= 1.0
         return True
 
+    def _duplicate(self, lane: str, payload: bytes) -> bool:
+        """Whether ``payload`` is an exact copy of one of the lane's last ``dedupe``
+        datagrams (remembered by a keyed hash; at most ``max_buckets`` lanes, LRU)."""
+        depth = self.policy.dedupe
+        if depth <= 0:
+            return False
+        recent = self._recent.get(lane)
+        if recent is None:
+            recent = self._recent[lane] = _Recent()
+            if len(self._recent) > self.policy.max_buckets:
+                self._recent.popitem(last=False)
+        else:
+            self._recent.move_to_end(lane)
+        return recent.seen(hash(payload), depth)
+
     def put(self, key: str, payload: bytes) -> None:
         """Queue one datagram (already admitted) and make sure the loop will take it."""
         policy = self.policy
@@ -404,6 +459,9 @@ class Inbox:
         now = self._time()
         with self._lock:
             if not self.active:
+                return
+            if self._duplicate(lane, payload):
+                stats.count("duplicate")
                 return
             if not self._token(lane, now):
                 stats.count("rate_limited")
@@ -453,6 +511,7 @@ class Inbox:
             self.active = False
             self._lanes.clear()
             self._buckets.clear()
+            self._recent.clear()
             self._bytes = 0
 
     def _drain(self) -> None:

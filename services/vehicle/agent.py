@@ -155,6 +155,12 @@ class VehicleAgent:
     """The car's place at its last planning step (None before the first)."""
     reach: dict[str, RsuReach] = field(init=False)
     """The scenario's RSUs: the intersection each serves and its coverage disc."""
+    rsu_newest_us: dict[str, int] = field(init=False)
+    """Per RSU, the generation time [µs] of the newest command or coordinated path taken
+    from it: an older one arriving later (reordered by the network, or withheld and
+    released by an attacker, which the replay window cannot tell from a first delivery)
+    is ignored, so a stale C_SLOW never undoes a newer release. Written only for RSUs
+    whose message passed the owner rule and whose reach is known (a few per route)."""
 
     def __post_init__(self) -> None:
         p = self.scenario.params
@@ -175,6 +181,7 @@ class VehicleAgent:
         self.rsus = {}
         self.counters = {}
         self.reach = {}
+        self.rsu_newest_us = {}
         for r in self.scenario.rsus:
             cx, cy = self.scenario.intersection(r.intersection).center
             self.reach[r.id] = RsuReach(r.intersection, float(cx), float(cy), r.coverage_m)
@@ -219,6 +226,8 @@ class VehicleAgent:
                 self._count("cmd_not_mine")
                 return
             why = self._refusal(rsu or message.header.sender, message.command)
+            if why is None and self._out_of_order(rsu or message.header.sender, message):
+                why = "out_of_order"
             if why is not None:
                 self._count(f"cmd_{why}")
                 return
@@ -239,6 +248,8 @@ class VehicleAgent:
                 self._count("cp_ignored")
                 return
             why = self._refusal(rsu or message.header.sender, None)
+            if why is None and self._out_of_order(rsu or message.header.sender, message):
+                why = "out_of_order"
             if why is not None:
                 self._count(f"cp_{why}")
                 return
@@ -265,6 +276,18 @@ class VehicleAgent:
             return None
         b = heard[0]
         return RsuReach(b.intersection, b.x, b.y, b.radius)
+
+    def _out_of_order(self, rsu: str, message: Message) -> bool:
+        """Whether ``message`` is older than what this RSU last told the car (see
+        ``rsu_newest_us``); else it becomes the newest. One step's command and path
+        share a time, so equal times are in order."""
+        time_us = message.header.time_us
+        newest = self.rsu_newest_us.get(rsu)
+        if newest is not None and time_us < newest:
+            return True
+        if newest is not None or self._reach(rsu) is not None:  # known RSUs only: bounded
+            self.rsu_newest_us[rsu] = time_us
+        return False
 
     def _refusal(self, sender: str, command: Command | None) -> str | None:
         """Why the car must not obey this RSU's command (``command``) or coordinated path

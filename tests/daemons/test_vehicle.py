@@ -268,12 +268,15 @@ async def test_real_vehicle_daemon_survives_garbage_and_counts_it() -> None:
         valid = encode(future_path("X", 0.0))
         padded = valid + b"\x00" * (2000 - len(valid))  # a valid message, but 2000 B
         deadline = time.monotonic() + 20.0
+        k = 0
         while malformed("fp") < 5 or malformed("cmd") < 3 or malformed("beacon") < 2:
             assert time.monotonic() < deadline, reports[-1:] or "no stats"
-            raw.publish(keyexpr.future_path("X"), garbage, V2X_QOS)
-            raw.publish(keyexpr.future_path("X"), padded, V2X_QOS)
-            raw.publish(keyexpr.rsu_command("rsu1", "A"), oversized, V2X_QOS)
-            raw.publish(keyexpr.rsu_beacon("rsu1"), b"\xff", V2X_QOS)
+            k += 1  # every round's V2X bytes differ: exact copies are dropped as duplicates
+            tag = k.to_bytes(4, "little")
+            raw.publish(keyexpr.future_path("X"), garbage + tag, V2X_QOS)
+            raw.publish(keyexpr.future_path("X"), padded[:-4] + tag, V2X_QOS)
+            raw.publish(keyexpr.rsu_command("rsu1", "A"), oversized[:-4] + tag, V2X_QOS)
+            raw.publish(keyexpr.rsu_beacon("rsu1"), b"\xff" + tag, V2X_QOS)
             raw.publish(control_key(), garbage, RELIABLE_QOS)
             raw.publish(truth_key("B"), oversized, RELIABLE_QOS)
             await asyncio.sleep(0.1)

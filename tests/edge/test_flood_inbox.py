@@ -112,6 +112,51 @@ async def test_per_sender_rate_limit_counts_what_it_drops() -> None:
     assert len(got) == 11
 
 
+@pytest.mark.parametrize(("dedupe", "expect"), [(32, 5), (0, 2)])
+async def test_replays_of_a_senders_datagrams_do_not_spend_its_rate(
+    dedupe: int, expect: int
+) -> None:
+    """A replayer repeating a sender's (validly signed) datagrams must not starve it: an
+    exact copy of one of the lane's recent datagrams is dropped before the token bucket.
+    Without ``dedupe`` the same replays use up the bucket and the sender's next datagrams
+    are rate limited (the CI failure of the evil-peer test, issue 13)."""
+    clock = Clock()
+    got: list[bytes] = []
+    policy = ReceivePolicy(rate_hz=10.0, burst=5.0, dedupe=dedupe)
+    inbox = Inbox(asyncio.get_running_loop(), lambda k, p: got.append(p), policy, time_fn=clock)
+    inbox.put("cp/v2x/rsu/r1/cmd/B", payload(4, 0))
+    await settle()
+    for _ in range(1000):  # at the same instant: no token comes back
+        inbox.put("cp/v2x/rsu/r1/cmd/B", payload(4, 0))
+    for tag in range(1, 5):  # the sender's next datagrams
+        inbox.put("cp/v2x/rsu/r1/cmd/B", payload(4, tag))
+        await asyncio.sleep(0)
+    await settle()
+    assert len(got) == expect
+    counts = policy.stats.counts
+    assert counts["duplicate"] == (1000 if dedupe else 0)
+    assert counts["rate_limited"] == (0 if dedupe else 1000)
+
+
+def test_a_negative_dedupe_is_refused() -> None:
+    with pytest.raises(ValueError, match="dedupe"):
+        ReceivePolicy(dedupe=-1)
+
+
+async def test_a_lane_forgets_what_is_beyond_its_dedupe_depth() -> None:
+    got: list[bytes] = []
+    policy = ReceivePolicy(depth=8, dedupe=2)
+    inbox = Inbox(asyncio.get_running_loop(), lambda k, p: got.append(p), policy)
+    for tag in (0, 1, 1, 2, 0, 2):  # 1 and 2 again within two; 0 after two others
+        inbox.put("cp/v2x/fp/A", payload(1, tag))
+    await settle()
+    assert got == [payload(1, t) for t in (0, 1, 2, 0)]
+    assert policy.stats.counts["duplicate"] == 2
+    inbox.put("cp/v2x/fp/B", payload(1, 0))  # the same bytes from another sender: its own
+    await settle()
+    assert len(got) == 5
+
+
 async def test_a_new_sender_on_every_datagram_keeps_state_bounded() -> None:
     delivered = 0
 
@@ -119,15 +164,17 @@ async def test_a_new_sender_on_every_datagram_keeps_state_bounded() -> None:
         nonlocal delivered
         delivered += 1
 
-    policy = ReceivePolicy(rate_hz=50.0, max_lanes=64, max_buckets=128, max_bytes=64 * 8)
+    policy = ReceivePolicy(rate_hz=50.0, max_lanes=64, max_buckets=128, max_bytes=64 * 8, dedupe=32)
     inbox = Inbox(asyncio.get_running_loop(), deliver, policy)
     n = 20_000
-    lanes = buckets = 0
+    lanes = buckets = remembered = 0
     for i in range(n):  # no loop turn in between: the worst backlog
         inbox.put(f"cp/v2x/fp/x{i}", payload(1, i))
         lanes = max(lanes, inbox.lanes)
         buckets = max(buckets, inbox.buckets)
+        remembered = max(remembered, inbox.remembered)
     assert lanes <= 64 and buckets <= 128 and inbox.queued_bytes <= 64 * 8
+    assert remembered == 128
     await settle(2000)
     counts = policy.stats.counts
     assert counts["offered"] == delivered == 64

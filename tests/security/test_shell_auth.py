@@ -65,7 +65,9 @@ async def test_shell_signs_verifies_and_counts(tmp_path: Path) -> None:
     now = clock.now()
     genuine = a.seal(encode(future_path("A", now - 0.01, seq=1)))
     await send(genuine)
-    await send(genuine)  # replay
+    await send(genuine)  # an exact copy: dropped by the inbox (``duplicate``)
+    # the same sequence again, older, signed by A: a replay only the window can tell
+    await send(a.seal(encode(future_path("A", now - 0.02, seq=1))))
     await send(encode(future_path("A", now - 0.01, seq=2)))  # unsigned
     other_run = Signer(auth.credentials("A"))
     other_run.begin_run(run_tag("run-0"))
@@ -83,6 +85,7 @@ async def test_shell_signs_verifies_and_counts(tmp_path: Path) -> None:
         "other_run": 1,
         "bad_certificate": 1,
     }
+    assert shell.stats_report(final=False).snapshot["receive"]["fp"]["duplicate"] == 1
     assert shell.publish_v2x(keyexpr.future_path("B"), future_path("B", now, seq=9))
     await asyncio.sleep(0.02)
     message, trailer = decode_signed(sent[-1])

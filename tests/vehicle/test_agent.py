@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import random
+
 import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from protocol import decode, encode
 from protocol.keys import Stream
@@ -155,3 +159,54 @@ def test_a_slot_stop_and_go_waits_at_its_stop_until_the_path_leaves_it(paper: Sc
     agent.on_message(2.9, decode(encode(cp)), "rsu1")  # the same path, still held to 3 s
     going = agent.tick(3.0, truth(paper, "A", 120.0, 0.0, 3.0), [])
     assert float(going.plan.profile.v.max()) > 1.0
+
+
+def test_an_older_command_or_path_arriving_late_changes_nothing(paper: Scenario) -> None:
+    """The network (or an attacker who withheld it) delivers the RSU's C_SLOW path of
+    before the release after the release: the replay window has never seen it, so only
+    its age can tell. The car stays C_FAST and counts it (the evil-peer flake, issue 13)."""
+    agent = vehicle_agent(paper, "A", v2x=True)
+    agent.tick(0.0, truth(paper, "A", 120.0, 12.0, 0.0), [])
+    agent.on_message(0.0, command("A", Command.INITIATE, Mode.C_SLOW, 0.0), "rsu1")
+    agent.on_message(0.3, command("A", Command.INITIATE, Mode.C_FAST, 0.3), "rsu1")
+    assert mode(agent) is Mode.C_FAST
+    xs = np.arange(-80.0, 40.0, 1.0)
+    pts = np.column_stack([xs, np.full_like(xs, -1.75), np.linspace(0.2, 10.0, xs.size)])
+    late = CoordinatedPath(Header("rsu1", 2, 200_000), "A", Mode.C_SLOW, pts, np.zeros(xs.size))
+    agent.on_message(0.35, decode(encode(late)), "rsu1")
+    agent.on_message(0.35, command("A", Command.INITIATE, Mode.C_SLOW, 0.1), "rsu1")
+    assert mode(agent) is Mode.C_FAST
+    assert agent.counters["cp_out_of_order"] == 1 and agent.counters["cmd_out_of_order"] == 1
+    # the same time as the newest is in order (one RSU step sends a command and a path)
+    same = CoordinatedPath(Header("rsu1", 3, 300_000), "A", Mode.C_FAST, pts, np.full(xs.size, 9.0))
+    agent.on_message(0.35, decode(encode(same)), "rsu1")
+    assert agent.counters["cp_followed"] == 1
+
+
+_ORDER_MODES = {
+    (Command.INITIATE, Mode.C_SLOW): Mode.C_SLOW,
+    (Command.INITIATE, Mode.C_FAST): Mode.C_FAST,
+    (Command.TERMINATE, Mode.AUTO): Mode.AUTO,
+}
+
+
+@given(
+    st.lists(st.sampled_from(sorted(_ORDER_MODES, key=str)), min_size=1, max_size=8),
+    st.randoms(use_true_random=False),
+)
+@settings(max_examples=80, deadline=None)
+def test_whatever_order_the_rsus_commands_arrive_in_the_newest_decides(
+    paper: Scenario, sent: list[tuple[Command, Mode]], rng: random.Random
+) -> None:
+    """Commands one RSU sent at 0.1 s intervals, delivered in any order: the car ends in
+    the mode of the newest one it was sent, never of one that merely arrived last."""
+    agent = vehicle_agent(paper, "A", v2x=True)
+    agent.tick(0.0, truth(paper, "A", 120.0, 12.0, 0.0), [])
+    msgs = [command("A", cmd, m, 0.1 * (i + 1)) for i, (cmd, m) in enumerate(sent)]
+    arrival = list(msgs)
+    rng.shuffle(arrival)
+    for msg in arrival:
+        agent.on_message(1.0, msg, "rsu1")
+    newest = max(msgs, key=lambda m: m.header.time_us)
+    expect = _ORDER_MODES[(newest.command, newest.mode)]
+    assert mode(agent) is expect, (sent, [(m.command, m.mode) for m in arrival])
