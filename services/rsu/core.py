@@ -244,6 +244,8 @@ class RsuCore:
         self.counters: collections.Counter[str] = collections.Counter()
         self._cars: dict[str, _Car] = {}
         self._seq = 0
+        self._stamp_us = -(2**53)
+        """Generation time of the last header [µs] (:meth:`_header`)."""
         self._next_beacon: float | None = None
         self._zone = paths.ConvexZone.of(config.conflict_zone)
         self._margins = (config.release_margin_m, config.release_margin_s)
@@ -372,8 +374,16 @@ class RsuCore:
     # -- messages -------------------------------------------------------------------------
 
     def _header(self, now: float) -> Header:
+        """The next header: sequence and generation time both increase from one message
+        to the next. A daemon calls :meth:`tick` with the step's scheduled time, which a
+        late tick has passed already, and :meth:`on_message` with the time of reception:
+        without the max, a late tick's beacon or command repeat carried a higher sequence
+        but an older time than a message already sent, and receivers' replay windows
+        refused it as from before a counter restart (seen in daemon runs, 1-2 beacons each).
+        """
         self._seq += 1
-        return Header(sender=self.config.rsu_id, seq=self._seq, time_us=round(now * 1e6))
+        self._stamp_us = max(self._stamp_us, round(now * 1e6))
+        return Header(sender=self.config.rsu_id, seq=self._seq, time_us=self._stamp_us)
 
     def _on_future_path(self, now: float, fp: FuturePath) -> list[Outgoing]:
         self.counters["fp_rx"] += 1
