@@ -22,6 +22,8 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
+from services.model.geometry import convex_overlap, footprint
+
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
 
@@ -282,6 +284,51 @@ def zone_span(points: FloatArray, polygon: ConvexZone | npt.ArrayLike) -> tuple[
     after = np.flatnonzero(~inside[first:])
     exit_index = first + int(after[0]) if after.size else points.shape[0]
     return first, exit_index
+
+
+AT_REST_MPS = 0.25
+"""A path whose last segment is slower than this [m/s] ends at rest (issue 12, cause 1)."""
+
+BODY_TOUCH_M = 0.05
+"""A body whose edge only touches the zone, within this [m], does not block it."""
+
+
+def ends_at_rest(points: FloatArray) -> bool:
+    """The path (N, 3) ends standing still: one point, a repeated last point (a held
+    stop), or a last segment of a few cm over a long time (a future path drops points
+    closer than 0.1 m, so its stop point may sit just past the last one)."""
+    if points.shape[0] < 2:
+        return True
+    d = math.hypot(float(points[-1, 0] - points[-2, 0]), float(points[-1, 1] - points[-2, 1]))
+    dt = float(points[-1, 2] - points[-2, 2])
+    return d <= 1e-6 or (dt > 0.0 and d < AT_REST_MPS * dt)
+
+
+def body_in_zone(
+    xy: FloatArray,
+    polygon: ConvexZone | npt.ArrayLike,
+    length: float,
+    width: float,
+    heading: float,
+) -> bool:
+    """The body of a car of ``length`` x ``width`` [m] at the polyline's last point (M, 2+),
+    along its last moving segment (else ``heading`` [rad]), overlaps the zone by more
+    than ``BODY_TOUCH_M``: a path that ends at rest there (:func:`ends_at_rest`) leaves
+    the car standing in the box, blocking every crossing through it."""
+    zone = ConvexZone.of(polygon)
+    x, y = float(xy[-1, 0]), float(xy[-1, 1])
+    cx, cy = zone.centroid
+    if math.hypot(x - cx, y - cy) > zone.radius + 0.5 * math.hypot(length, width):
+        return False  # far from the box: the cheap test first
+    last = heading_of(xy, xy.shape[0] - 2)
+    body = footprint(
+        x,
+        y,
+        heading if last is None else last,
+        max(length - 2.0 * BODY_TOUCH_M, 0.0),
+        max(width - 2.0 * BODY_TOUCH_M, 0.0),
+    )
+    return convex_overlap(body, np.asarray(zone.vertices))
 
 
 def zone_entry_time(points: FloatArray, polygon: ConvexZone | npt.ArrayLike) -> float:
