@@ -59,6 +59,9 @@ policies, cars following their coordinated paths exactly) and cause by cause in
    within a headway of a committed car's, and no slot plan, release or unslowed ``AUTO``
    path does so where the two bodies' sweeps through the zone meet (``_bodies_meet``;
    the point rule's 2.8 m misses bodies that touch at a crawl).
+7. Under ``slot``, no slot leaves a car that can still stop before the zone standing
+   in it: a path that ends at rest with the body in the zone gets the paper's stop
+   instead (``VelocityManager.rests_in_zone``, ``tests/rsu/test_box.py``).
 
 Status: the property holds for ``slot``; for ``paper`` it still fails where a turning
 car merges into a lane a straight car also uses (``KNOWN_FAILURE`` in the test).
