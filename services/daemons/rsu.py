@@ -52,7 +52,7 @@ from collections.abc import Iterable
 from pathlib import Path
 from typing import Any, Final
 
-from protocol import Command, FuturePath, Header, Message, Mode, ModeCommand, VehiclePath
+from protocol import FuturePath, Message, Mode, ModeCommand, VehiclePath
 from protocol import keys as keyexpr
 from protocol.keys import ParsedKey, Stream
 from services.edge.clock import RunClock
@@ -119,7 +119,6 @@ class RsuDaemon(ActorDaemon[RsuDaemonConfig]):
         self.reported: dict[str, Mode] = {}
         """Each car's mode as its latest future path shows it."""
         self.terminations_sent = 0
-        self._seq = 0
 
     def subscribe_v2x(self) -> None:
         p = self.prefix
@@ -220,25 +219,24 @@ class RsuDaemon(ActorDaemon[RsuDaemonConfig]):
 
     async def on_episode_end(self, start: StartRun, clock: RunClock) -> None:
         targets = self.coordinated()
-        self.core = None  # no more decisions; receptions still update ``reported``
+        core, self.core = self.core, None  # no more decisions; receptions update ``reported``
+        if core is None:
+            return
         for round_ in range(TERMINATION_ROUNDS):
             if round_ > 0:
                 targets = [v for v in targets if self.reported.get(v) is not Mode.AUTO]
             if not targets:
                 break
             for vehicle in targets:
-                self._terminate(clock, vehicle)
+                self._terminate(core.termination(clock.now(), vehicle))
             self.log.info("terminations sent to %s (round %d)", ", ".join(targets), round_ + 1)
             for vehicle in targets:
                 self.reported.pop(vehicle, None)
             await asyncio.sleep(TERMINATION_INTERVAL_S)
 
-    def _terminate(self, clock: RunClock, vehicle: str) -> None:
-        self._seq = (self._seq + 1) & 0xFFFFFFFF
-        header = Header(sender=self.node, seq=self._seq, time_us=round(clock.now() * 1e6))
-        message = ModeCommand(header, vehicle, Command.TERMINATE, Mode.AUTO)
+    def _terminate(self, message: ModeCommand) -> None:
         if self.shell.publish_v2x(
-            keyexpr.rsu_command(self.node, vehicle, prefix=self.prefix), message
+            keyexpr.rsu_command(self.node, message.vehicle, prefix=self.prefix), message
         ):
             self.terminations_sent += 1
 

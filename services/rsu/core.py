@@ -283,6 +283,12 @@ class RsuCore:
                 deadline = min(deadline, car.pending.last_sent + repeat)
         return min(deadline, self.table.next_expiry())
 
+    def termination(self, now: float, vehicle: str) -> ModeCommand:
+        """A ``TERMINATE`` for ``vehicle`` outside any decision (the run's end: the daemon
+        hands every coordinated car back to its own planner), in this core's header
+        sequence, so that the cars' replay windows take it after everything sent before."""
+        return ModeCommand(self._header(now), vehicle, Command.TERMINATE, Mode.AUTO)
+
     def forget(self, vehicle: str) -> bool:
         """Drop a car entirely (table entry, mode, pending command)."""
         known = self._cars.pop(vehicle, None) is not None
