@@ -326,14 +326,15 @@ class VelocityManager:
         if mode == Mode.C_FAST:
             return self.behind_leaders(vehicle, track, self._fast(track), now, table, exclude)
         if mode == Mode.C_SLOW:
+            kind = "stop"
+            if self.policy == Policy.SLOT:
+                slot = self._slot(vehicle, track, now, table, exclude, admissible)
+                if slot is not None:
+                    return slot
+                kind = "slot_fallback"
             factor = FIRM_STOP_FACTOR if firm else HARD_STOP_FACTOR
             limit = self.stop_limit(vehicle, track, now, table, exclude, factor)
-            if self.policy == Policy.SLOT:
-                plan = self._slot(vehicle, track, now, table, exclude, admissible)
-                if plan.kind != "slot_fallback":
-                    return plan
-                return self._stop(track, "slot_fallback", limit)
-            return self._stop(track, "stop", limit)
+            return self._stop(track, kind, limit)
         raise ValueError(f"no coordinated path for mode {mode!r}")
 
     def zone_edge(self, tr: _Track) -> float | None:
@@ -566,12 +567,13 @@ class VelocityManager:
         table: ReservationTable,
         exclude: Collection[str],
         admissible: Callable[[FloatArray], bool] | None = None,
-    ) -> SpeedPlan:
+    ) -> SpeedPlan | None:
+        """The slot plan, or None when there is none (the caller then stops the car)."""
         cfg = self.config
         cap, entry = self._fast_caps(tr)
         if entry is None or entry == 0 or self.rests_in_zone(tr):
             # retiming keeps the path's positions: a path that stops in the box has no slot
-            return self._stop(tr, "slot_fallback")
+            return None
         env = _envelope(tr.d, cap, tr.decel)
         fastest = self._cruise(tr, entry, env, tr.v_max)
         t_fast = tr.t0 + float(np.sum(_segment_times(tr.d[: entry + 1], fastest[: entry + 1])))
@@ -617,11 +619,11 @@ class VelocityManager:
             for j in range(failed + 1, i):  # the fine steps since the last failure
                 earlier = attempt(j)
                 if earlier is not None or impossible:
-                    return earlier or self._stop(tr, "slot_fallback")
+                    return earlier
             if found is not None:
                 return found
             break
-        return self._stop(tr, "slot_fallback")
+        return None
 
     def _cruise(self, tr: _Track, entry: int, env: FloatArray, v_c: float) -> FloatArray:
         """Speeds: reach ``v_c`` (braking or accelerating), hold it to the zone entry, then go;
