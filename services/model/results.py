@@ -322,6 +322,10 @@ class RunResult(_Frozen):
     """Smallest distance between two footprints over the run; None if never measured."""
     min_pet_s: NonNegative | None
     """Smallest post-encroachment time in a conflict zone; None if no two cars crossed."""
+    min_conflict_pet_s: NonNegative | None
+    """Smallest post-encroachment time at a conflict area, where two cars' paths meet
+    (``services.sim.metrics``): at merges ``min_pet_s`` counts any joint occupancy of
+    the zone; None if no two conflicting cars both reached their area."""
     sim_s: NonNegative
     """Run time simulated [s]."""
     wall_s: NonNegative
@@ -407,6 +411,7 @@ class RunResult(_Frozen):
                 "collisions": 0,
                 "min_gap_m": None,
                 "min_pet_s": None,
+                "min_conflict_pet_s": None,
                 "sim_s": 0.0,
                 "wall_s": 0.0,
                 "mean_passing_time_s": None,

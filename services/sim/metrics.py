@@ -26,6 +26,18 @@ Definitions (times in s on the run's time base, distances in m):
   the zone come within ``d_margin_m``: crossing and merging count, a car following
   another through the same entry does not (that gap is a headway). ``inf`` if no
   such pair passes.
+- **conflict-area PET**: the same pairs, measured where their paths meet, not over the
+  whole zone (Allen et al.'s PET at the conflict point). The conflict area of a pair
+  is, on each route, the stretch of its centre line inside the zone that comes within
+  ``d_margin_m`` of the other's where that one heads another way (more than
+  ``SAME_WAY_RAD``, 35 degrees, as the RSU's lane rule): a crossing, or a merge up to
+  where the two paths have become one lane (beyond it the cars follow each other, which
+  the gap measures). A car occupies its stretch from its front reaching the start to its
+  rear passing the end (along its route: ``s +- length / 2``, interpolated linearly
+  between steps). At a merge the zone PET is 0 whenever the follower enters the box
+  before its leader has left it, metres apart (four-way-flows, paper, seed 0: 16 ms of
+  joint occupancy, 7.4 m apart). A car is assumed to pass each conflict area once
+  (routes do not loop through a zone).
 - **first through**: the car entered the conflict zone of the first intersection on
   its route before every other car that entered that zone (ties: lower id).
 - **stops**: times the speed drops below 0.1 m/s after having exceeded 1.0 m/s;
@@ -69,6 +81,7 @@ from services.model.geometry import (
 from services.model.kinematics import Limits, TruthState, curve_speed_cap
 from services.model.limits import STOP_ARM_ABOVE_MPS, STOP_COUNT_BELOW_MPS
 from services.model.scenario import SAMPLE_STEP_M, Scenario
+from services.rsu.reservation import SAME_WAY_RAD
 
 __all__ = [
     "CollisionEvent",
@@ -159,6 +172,8 @@ class RunMetrics:
     min_gap_pair: tuple[str, str] | None = None
     min_pet_pair: tuple[str, str] | None = None
     min_pet_intersection: str | None = None
+    min_conflict_pet_s: float = math.inf
+    min_conflict_pet_pair: tuple[str, str] | None = None
 
     def as_dict(self) -> dict[str, Any]:
         """JSON-ready keys of the run result (``inf`` becomes None: JSON has no inf)."""
@@ -170,6 +185,7 @@ class RunMetrics:
             "collisions": self.collisions,
             "min_gap_m": fin(self.min_gap_m),
             "min_pet_s": fin(self.min_pet_s),
+            "min_conflict_pet_s": fin(self.min_conflict_pet_s),
             "sim_s": self.sim_s,
             "vehicles": {vid: vm.as_dict() for vid, vm in self.vehicles.items()},
         }
@@ -205,6 +221,9 @@ class _Track:
     mode_changes: list[tuple[float, str]] = field(default_factory=list)
     arrival_s: float | None = None
     inserted_s: float | None = None
+    arc_window: tuple[float, float] | None = None  # route stretch around its zones [m]
+    arc_t: list[float] = field(default_factory=list)  # times [s] of arc_s, in order
+    arc_s: list[float] = field(default_factory=list)  # route positions [m] in arc_window
 
 
 class MetricsRecorder:
@@ -240,7 +259,14 @@ class MetricsRecorder:
             r = float(np.max(np.hypot(*(poly - c).T)))
             self._zone_poly[it.id] = poly
             self._zone_reach[it.id] = (float(c[0]), float(c[1]), r)
+        for tr in self._tracks.values():
+            spans = [tr.route.interval_in_polygon(self._zone_poly[x]) for x in tr.zones]
+            found = [sp for sp in spans if sp is not None]
+            if found:  # the conflict areas lie inside; a body length of room either side
+                lo = min(sp[0] for sp in found) - tr.length
+                tr.arc_window = (lo, max(sp[1] for sp in found) + tr.length)
         self._conflict_cache: dict[tuple[str, str, str], bool] = {}
+        self._area_cache: dict[tuple[str, str, str], tuple[float, float] | None] = {}
         self._t: float | None = None
         self._t0: float | None = None
         self._collisions: list[CollisionEvent] = []
@@ -332,6 +358,20 @@ class MetricsRecorder:
             tr.armed = False
             if tr.finished_s is None and abs(st.s - tr.goal) <= self._tol:
                 tr.finished_s = t
+
+        window = tr.arc_window
+        if window is not None:
+            lo, hi = (st.s, st.s) if prev is None else sorted((prev.s, st.s))
+            if hi >= window[0] and lo <= window[1]:  # this step's move touches the window
+                if (
+                    prev is not None
+                    and prev_t is not None
+                    and (not tr.arc_t or tr.arc_t[-1] != prev_t)
+                ):
+                    tr.arc_t.append(prev_t)
+                    tr.arc_s.append(prev.s)
+                tr.arc_t.append(t)
+                tr.arc_s.append(st.s)
 
         for xid in tr.zones:
             now_in = self._in_zone(xid, st)
@@ -471,6 +511,54 @@ class MetricsRecorder:
         self._conflict_cache[key] = res
         return res
 
+    def _conflict_area(self, ra: str, rb: str, xid: str) -> tuple[float, float] | None:
+        """The stretch ``(s0, s1)`` of route ``ra``'s centre line inside zone ``xid`` that
+        comes within ``d_margin_m`` of route ``rb``'s there, at a point of ``rb`` heading
+        another way (by more than ``SAME_WAY_RAD``); None if none does."""
+        key = (ra, rb, xid)
+        if key in self._area_cache:
+            return self._area_cache[key]
+        zone = self._zone_poly[xid]
+        pa, pb = self._sc.route(ra), self._sc.route(rb)
+        ia, ib = pa.interval_in_polygon(zone), pb.interval_in_polygon(zone)
+        area: tuple[float, float] | None = None
+        if ia is not None and ib is not None:
+            n = max(2, math.ceil((ia[1] - ia[0]) / SAMPLE_STEP_M) + 1)
+            s = np.linspace(ia[0], ia[1], n)
+            nb = max(2, math.ceil((ib[1] - ib[0]) / SAMPLE_STEP_M) + 1)
+            sb_s = np.linspace(ib[0], ib[1], nb)
+            sa, sb = pa.points_at(s), pb.points_at(sb_s)
+            d = np.hypot(sa[:, None, 0] - sb[None, :, 0], sa[:, None, 1] - sb[None, :, 1])
+            turn = pa.headings_at(s)[:, None] - pb.headings_at(sb_s)[None, :]
+            across = np.abs(np.arctan2(np.sin(turn), np.cos(turn))) > SAME_WAY_RAD
+            near = np.flatnonzero(((d < self._sc.params.d_margin_m) & across).any(axis=1))
+            if near.size:
+                area = (float(s[near[0]]), float(s[near[-1]]))
+        self._area_cache[key] = area
+        return area
+
+    def _occupancy(self, tr: _Track, area: tuple[float, float]) -> tuple[float, float] | None:
+        """When ``tr``'s body was on ``area`` of its route: front at its start to rear past
+        its end [s]; the end ``inf`` if the rear never passed; None if it never got there."""
+        enter = _first_reach(tr.arc_t, tr.arc_s, area[0] - 0.5 * tr.length)
+        if enter is None:
+            return None
+        leave = _first_reach(tr.arc_t, tr.arc_s, area[1] + 0.5 * tr.length)
+        return enter, math.inf if leave is None else leave
+
+    def _conflict_pet(self, a: str, b: str, xid: str) -> float:
+        """Conflict-area PET of cars ``a`` and ``b`` at ``xid`` [s]; ``inf`` if one of them
+        never reached its side of the area."""
+        ta, tb = self._tracks[a], self._tracks[b]
+        ra, rb = self._sc.vehicle(a).route, self._sc.vehicle(b).route
+        area_a, area_b = self._conflict_area(ra, rb, xid), self._conflict_area(rb, ra, xid)
+        if area_a is None or area_b is None:
+            return math.inf
+        oa, ob = self._occupancy(ta, area_a), self._occupancy(tb, area_b)
+        if oa is None or ob is None:
+            return math.inf
+        return max(0.0, ob[0] - oa[1], oa[0] - ob[1])
+
     def result(self) -> RunMetrics:
         """The metrics so far (may be called at any time; recording may continue)."""
         self._flush_pairs()
@@ -483,12 +571,17 @@ class MetricsRecorder:
         min_pet = math.inf
         pet_pair: tuple[str, str] | None = None
         pet_x: str | None = None
+        min_area_pet = math.inf
+        area_pair: tuple[str, str] | None = None
         for xid, per_car in visits.items():
             for a, b in combinations(sorted(per_car), 2):
                 ra = self._sc.vehicle(a).route
                 rb = self._sc.vehicle(b).route
                 if not self._conflicting(ra, rb, xid):
                     continue
+                area_pet = self._conflict_pet(a, b, xid)
+                if area_pet < min_area_pet:
+                    min_area_pet, area_pair = area_pet, (a, b)
                 for ain, aout in per_car[a]:
                     for bin_, bout in per_car[b]:
                         pet = max(0.0, bin_ - aout, ain - bout)
@@ -545,6 +638,8 @@ class MetricsRecorder:
             collisions=len(self._collisions),
             min_gap_m=self._min_gap,
             min_pet_s=min_pet,
+            min_conflict_pet_s=min_area_pet,
+            min_conflict_pet_pair=area_pair,
             sim_s=0.0 if self._t is None else self._t,
             vehicles=vehicles,
             collision_events=tuple(self._collisions),
@@ -553,6 +648,18 @@ class MetricsRecorder:
             min_pet_pair=pet_pair,
             min_pet_intersection=pet_x,
         )
+
+
+def _first_reach(times: Sequence[float], arcs: Sequence[float], target: float) -> float | None:
+    """First time [s] the route position reaches ``target`` [m], interpolated linearly
+    between samples; the first sample's time if it is already there; None if never."""
+    for i, s in enumerate(arcs):
+        if s >= target:
+            if i == 0:
+                return times[0]
+            s0, t0 = arcs[i - 1], times[i - 1]  # s0 < target <= s
+            return t0 + (times[i] - t0) * (target - s0) / (s - s0)
+    return None
 
 
 def _gate_time(

@@ -123,6 +123,7 @@ def run_result(
             "collisions": int(metrics.collisions),
             "min_gap_m": _num(metrics.min_gap_m),
             "min_pet_s": _num(metrics.min_pet_s),
+            "min_conflict_pet_s": _num(metrics.min_conflict_pet_s),
             "sim_s": round(sim_s, 3),
             "wall_s": round(wall_s, 3),
             "mean_passing_time_s": _num(sum(passing) / len(passing)) if passing else None,
@@ -175,11 +176,13 @@ def format_summary(result: RunResult) -> str:
     mean = result.mean_passing_time_s
     gap = result.min_gap_m
     pet = result.min_pet_s
+    area = result.min_conflict_pet_s
     lines.append(
         f"mean passing {'-' if mean is None else f'{mean:.2f} s'}"
         f"  collisions {result.collisions}"
         f"  min gap {'-' if gap is None else f'{gap:.2f} m'}"
         f"  min PET {'-' if pet is None else f'{pet:.2f} s'}"
+        f" (conflict area {'-' if area is None else f'{area:.2f} s'})"
     )
     speedup = result.speedup_vs_real_time
     lines.append(

@@ -22,7 +22,8 @@ ROOT = Path(__file__).resolve().parents[2]
 SCHEMA = ROOT / "docs" / "run-result.schema.json"
 
 BASE_KEYS = {
-    "mode", "policy", "seed", "collisions", "min_gap_m", "min_pet_s", "sim_s", "wall_s",
+    "mode", "policy", "seed", "collisions", "min_gap_m", "min_pet_s", "min_conflict_pet_s",
+    "sim_s", "wall_s",
     "mean_passing_time_s", "all_finished", "vehicles", "scenario", "start_times", "harness",
     "speedup_vs_real_time",
 }  # fmt: skip
@@ -50,7 +51,8 @@ def _car(passing: float | None = 24.5, first: bool = True) -> dict[str, Any]:
 def _base(**over: Any) -> dict[str, Any]:
     data: dict[str, Any] = {
         "mode": "rsu", "policy": "slot", "seed": 4, "collisions": 0, "min_gap_m": None,
-        "min_pet_s": 1.35, "sim_s": 38.0, "wall_s": 0.9, "mean_passing_time_s": 24.5,
+        "min_pet_s": 1.35, "min_conflict_pet_s": 1.6, "sim_s": 38.0, "wall_s": 0.9,
+        "mean_passing_time_s": 24.5,
         "all_finished": False, "vehicles": {"A": _car(), "B": _car(None, False)},
         "scenario": "paper-blind-intersection", "start_times": {"A": 0.0, "B": 0.5986},
         "harness": "in-process", "speedup_vs_real_time": 42.2,

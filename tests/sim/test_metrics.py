@@ -8,6 +8,8 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from services.model.kinematics import TruthState
 from services.model.scenario import Scenario, load_scenario, parse_scenario
@@ -16,6 +18,7 @@ from services.sim.metrics import MetricsRecorder, RunMetrics
 ROOT = Path(__file__).resolve().parents[2]
 PAPER = ROOT / "scenarios" / "paper-blind-intersection.toml"
 CORRIDOR = Path(__file__).resolve().parents[1] / "data" / "corridor.toml"
+SMALL_FLOWS = Path(__file__).resolve().parents[1] / "data" / "four-way-flows-small.toml"
 DT = 0.05
 
 Profile = Callable[[float], tuple[float, float]]  # t -> (s, v)
@@ -267,3 +270,76 @@ def test_a_car_missing_at_a_step_neither_ends_nor_starts_an_overlap(
     assert res.collisions == collisions
     assert res.collision_events[0].t == pytest.approx(DT)
     assert res.min_gap_m == 0.0
+
+
+# -- conflict-area PET ---------------------------------------------------------------------
+
+
+def test_conflict_area_pet_of_two_crafted_crossings(paper: Scenario) -> None:
+    """A's centre line comes within d_margin (2.8 m) of B's from x = -1.0 m (sampled every
+    0.25 m) to the box's far edge, B's from the box's near edge to y = 1.0 m: A is on its
+    area from 19.675 s (front at s = 199.0 - 2.25) to 20.575 s (rear past 203.5 + 2.25),
+    B from t0 + 19.425 s to t0 + 20.325 s."""
+    res = simulate(paper, {"A": constant(10.0), "B": constant(10.0, t0=3.0)}, 40.0)
+    assert res.min_conflict_pet_s == pytest.approx(22.425 - 20.575, abs=1e-6)  # = zone PET
+    assert res.min_conflict_pet_pair == ("A", "B")
+    # A 1.2 s behind B: 0.05 s between B leaving the box and A entering it, 0.55 s at
+    # the area (B's rear is past A's path before A's front reaches B's)
+    res = simulate(paper, {"A": constant(10.0, t0=1.2), "B": constant(10.0)}, 40.0)
+    assert res.min_pet_s == pytest.approx(0.05, abs=1e-6)
+    assert res.min_conflict_pet_s == pytest.approx(20.875 - 20.325, abs=1e-6)
+    assert res.as_dict()["min_conflict_pet_s"] == pytest.approx(0.55, abs=1e-6)
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.floats(-3.0, 3.0), st.floats(4.0, 14.0), st.floats(4.0, 14.0))
+def test_conflict_area_pet_of_random_crossings(
+    paper: Scenario, offset: float, va: float, vb: float
+) -> None:
+    """Any two speeds and start offsets: the analytic PET at the area of the paper's
+    crossing (areas as in the crafted test; linear interpolation between steps is exact
+    at constant speed), and never below the zone PET (the area lies inside the zone)."""
+    ta0, tb0 = max(0.0, -offset), max(0.0, offset)
+    res = simulate(paper, {"A": constant(va, t0=ta0), "B": constant(vb, t0=tb0)}, 80.0)
+    a_in, a_out = ta0 + (199.0 - 2.25) / va, ta0 + (203.5 + 2.25) / va
+    b_in, b_out = tb0 + (196.5 - 2.25) / vb, tb0 + (201.0 + 2.25) / vb
+    assert res.min_conflict_pet_s == pytest.approx(max(0.0, b_in - a_out, a_in - b_out), abs=1e-6)
+    assert res.min_conflict_pet_s >= res.min_pet_s - 1e-9
+
+
+def test_a_merge_has_zone_pet_0_but_a_conflict_area_pet() -> None:
+    """A left turner from the south (route "sw") into the westbound lane enters the box
+    0.1 s before the straight westbound car ahead ("ew") leaves it by the west edge, 7.4 m
+    away: zone PET 0. Where their paths meet (for the turner from about 0.7 m into the
+    turn's arc, 2.45 m past the box's edge, reached at 5 m/s about 0.5 s after entering;
+    for the lead up to where the turner heads within 35 degrees of its way), the lane was
+    clear: conflict-area PET about 0.5 s."""
+    text = SMALL_FLOWS.read_text()
+    text = text[: text.index("[[flows]]")] + text[text.index("[[rsus]]") :]
+    text += (
+        '\n[[vehicles]]\nid = "lead"\nroute = "ew"\n\n[[vehicles]]\nid = "turner"\nroute = "sw"\n'
+    )
+    sc = parse_scenario(text)
+    rec = MetricsRecorder(sc)
+    lead_route, turn_route = sc.route("ew"), sc.route("sw")
+    zone = sc.zone_polygon("X1")
+    lead_span, turn_span = (
+        lead_route.interval_in_polygon(zone),
+        turn_route.interval_in_polygon(zone),
+    )
+    assert lead_span is not None and turn_span is not None
+    lead_out = (lead_span[1] + 2.25) / 10.0  # lead's rear leaves the box
+    turn_t0 = lead_out - 0.1 - (turn_span[0] - 2.25) / 5.0  # its front enters 0.1 s before
+    profiles = {"lead": constant(10.0), "turner": constant(5.0, t0=turn_t0)}
+    for k in range(round(11.0 / DT) + 1):  # the lead reaches its route's end at 12 s
+        t = k * DT
+        rec.record(t, [truth(sc, vid, t, *prof(t)) for vid, prof in profiles.items()])
+    res = rec.result()
+    assert res.collisions == 0
+    assert res.min_pet_s == 0.0
+    assert 0.45 < res.min_conflict_pet_s < 0.6, res.min_conflict_pet_s
+    # the lead's stretch ends where the two paths have become one lane (heading within
+    # 35 degrees), about 1 m short of the box's west edge: beyond it they follow
+    lead_area = rec._conflict_area("ew", "sw", "X1")
+    assert lead_area is not None and lead_span[0] <= lead_area[0] < lead_area[1]
+    assert lead_span[1] - 2.0 < lead_area[1] < lead_span[1] - 0.5, (lead_area, lead_span)

@@ -138,7 +138,8 @@ def _sweep_run(
     data = {
         "mode": "rsu", "policy": "paper", "seed": 0, "collisions": collisions,
         "min_gap_m": 12.0 if collisions == 0 else 0.0, "min_pet_s": pet, "sim_s": 40.0,
-        "wall_s": 20.0, "mean_passing_time_s": mean, "all_finished": True,
+        "min_conflict_pet_s": pet, "wall_s": 20.0, "mean_passing_time_s": mean,
+        "all_finished": True,
         "vehicles": {"A": car, "B": car}, "scenario": "paper-blind-intersection",
         "start_times": {"A": 0.0, "B": 0.5}, "harness": "daemons",
         "speedup_vs_real_time": 2.0, "network": network, "lab": lab,
