@@ -250,6 +250,12 @@ class MetricsRecorder:
                 gate1=gate1,
                 first_x=cr[0].intersection if cr else None,
                 zones=[c.intersection for c in cr],
+                # the conflict areas lie in its zones; a body length of room either side
+                arc_window=(
+                    (min(c.s_in for c in cr) - v.length_m, max(c.s_out for c in cr) + v.length_m)
+                    if cr
+                    else None
+                ),
             )
         self._zone_poly: dict[str, FloatArray] = {}
         self._zone_reach: dict[str, tuple[float, float, float]] = {}
@@ -259,12 +265,6 @@ class MetricsRecorder:
             r = float(np.max(np.hypot(*(poly - c).T)))
             self._zone_poly[it.id] = poly
             self._zone_reach[it.id] = (float(c[0]), float(c[1]), r)
-        for tr in self._tracks.values():
-            spans = [tr.route.interval_in_polygon(self._zone_poly[x]) for x in tr.zones]
-            found = [sp for sp in spans if sp is not None]
-            if found:  # the conflict areas lie inside; a body length of room either side
-                lo = min(sp[0] for sp in found) - tr.length
-                tr.arc_window = (lo, max(sp[1] for sp in found) + tr.length)
         self._conflict_cache: dict[tuple[str, str, str], bool] = {}
         self._area_cache: dict[tuple[str, str, str], tuple[float, float] | None] = {}
         self._t: float | None = None
@@ -361,8 +361,9 @@ class MetricsRecorder:
 
         window = tr.arc_window
         if window is not None:
-            lo, hi = (st.s, st.s) if prev is None else sorted((prev.s, st.s))
-            if hi >= window[0] and lo <= window[1]:  # this step's move touches the window
+            back = st.s if prev is None else prev.s
+            # this step's move touches the window
+            if max(back, st.s) >= window[0] and min(back, st.s) <= window[1]:
                 if (
                     prev is not None
                     and prev_t is not None
