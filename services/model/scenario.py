@@ -413,7 +413,7 @@ class VehicleParams(_Model):
     """Received future paths older than this are forgotten [s] (under ``fp_rule =
     "change"`` plus ``fp_refresh_s``: see :meth:`Scenario.fp_hold_s`)."""
     fp_rule: Literal["periodic", "change"] = "periodic"
-    """When a car sends its future path (``services.vehicle.fp_rule``): "periodic" every
+    """When a car sends its future path (``services.model.send_rule``): "periodic" every
     planning tick (the paper's 10 Hz), "change" only when it deviates from the last one
     sent by more than ``fp_change_m``, on a mode change, and at least every
     ``fp_refresh_s``. Scenario-wide (not a per-car override): every receiver's expiry
@@ -430,6 +430,14 @@ class VehicleParams(_Model):
     the car's ``coordinated_timeout_s`` grows by ``ap_refresh_s``."""
     ap_refresh_s: PosF = 0.2
     """``ap_rule = "change"``: the autonomous path is sent at least this often [s]."""
+    cp_rule: Literal["periodic", "change"] = "periodic"
+    """The same for the RSU's coordinated path to a car: "periodic" answers every
+    autonomous path with one, "change" only when it deviates from the last one sent to
+    that car by more than ``fp_change_m``, on a mode change, and at least every
+    ``cp_refresh_s``; the car's ``coordinated_timeout_s`` grows by ``cp_refresh_s``."""
+    cp_refresh_s: PosF = 0.5
+    """``cp_rule = "change"``: the RSU sends a car a coordinated path at least this often
+    (when it answers an autonomous path) [s]."""
 
 
 class VehicleParamsOverrides(_Model):
@@ -777,6 +785,24 @@ class Scenario:
                 f"{vp.ap_refresh_s} s is shorter than one planning period "
                 f"({1.0 / p.planning_hz:g} s)",
             )
+        if vp.cp_rule == "change":
+            if vp.cp_refresh_s < 1.0 / p.planning_hz - 1e-9:
+                raise self._err(
+                    "vehicle_params.cp_refresh_s",
+                    f"{vp.cp_refresh_s} s is shorter than one planning period "
+                    f"({1.0 / p.planning_hz:g} s)",
+                )
+            # the car follows a coordinated path up to its (grown) timeout after it came
+            held = vp.cp_refresh_s + p.coordinated_timeout_s + (
+                vp.ap_refresh_s if vp.ap_rule == "change" else 0.0
+            )
+            if held > p.t_free_s:
+                raise self._err(
+                    "vehicle_params.cp_refresh_s",
+                    f"{vp.cp_refresh_s} s plus the car's coordinated timeout exceeds the "
+                    f"path horizon t_free_s = {p.t_free_s} s: a held coordinated path "
+                    "would run out before the car gives it up",
+                )
         if vp.fp_rule == "periodic":
             return
         base = max(

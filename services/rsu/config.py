@@ -69,6 +69,11 @@ class RsuConfig:
     release_margin_m: float = _KNOBS.release_margin_m
     release_margin_s: float = _KNOBS.release_margin_s
     max_points: int | None = None  # cap on coordinated path points (the codec's limit), or none
+    # the coordinated path's send rule (services.model.send_rule): None sends one in answer
+    # to every autonomous path (the paper); else the deviation [m] below which the last
+    # one sent stands, and the longest it stands [s]
+    cp_change_m: float | None = None
+    cp_refresh_s: float = 0.5
 
     def __post_init__(self) -> None:
         if not self.rsu_id or not self.intersection:
@@ -95,6 +100,7 @@ class RsuConfig:
             "slot_step_s",
             "slot_min_speed_mps",
             "hold_step_s",
+            "cp_refresh_s",
         ):
             value = getattr(self, name)
             if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
@@ -103,6 +109,10 @@ class RsuConfig:
             value = getattr(self, name)
             if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
                 raise ValueError(f"RsuConfig.{name} must be finite and >= 0, got {value!r}")
+        if self.cp_change_m is not None and not (
+            math.isfinite(self.cp_change_m) and self.cp_change_m > 0
+        ):
+            raise ValueError(f"RsuConfig.cp_change_m must be positive, got {self.cp_change_m!r}")
         if self.max_points is not None and self.max_points < 2:
             raise ValueError("RsuConfig.max_points must be at least 2")
         if self.t_collision_s > self.t_free_s:
@@ -117,6 +127,7 @@ def rsu_config(scenario: Scenario, rsu_id: str, policy: Policy) -> RsuConfig:
     p = scenario.params
     spec = scenario.rsu(rsu_id)
     knobs = scenario.rsu_params(rsu_id)
+    vp = scenario.spec.vehicle_params
     inter = scenario.intersection(spec.intersection)
     return RsuConfig(
         rsu_id=spec.id,
@@ -145,4 +156,6 @@ def rsu_config(scenario: Scenario, rsu_id: str, policy: Policy) -> RsuConfig:
         release_margin_s=knobs.release_margin_s,
         # a coordinated path must fit one datagram: thin it to what the codec guarantees
         max_points=max_points(Kind.COORDINATED_PATH),
+        cp_change_m=None if vp.cp_rule == "periodic" else vp.fp_change_m,
+        cp_refresh_s=vp.cp_refresh_s,
     )

@@ -113,6 +113,7 @@ from protocol.messages import (
     VehiclePath,
 )
 from services.model.geometry import any_rects_overlap, footprints
+from services.model.send_rule import ChangeRule
 from services.model.types import Policy
 from services.rsu import paths
 from services.rsu.config import RsuConfig
@@ -192,6 +193,7 @@ class _Car:
     changes: int = 0  # mode changes the RSU made in this crossing
     changed_at: float = -math.inf  # when the last one was [s]
     held_short: bool = False  # its last coordinated path stops it short of the zone
+    sent: ChangeRule | None = None  # under cp_rule: the last coordinated path sent it
 
     def observe(self, path: VehiclePath) -> None:
         if path.header.time_us >= self.state_us:
@@ -441,10 +443,12 @@ class RsuCore:
                 # Soft state: the car has fallen back to its own planner (no coordinated path
                 # reached it for 0.3 s, e.g. under packet loss). Take it back.
                 self.counters["reinitiations"] += 1
-                return [
-                    self._command(now, car, Command.INITIATE, car.mode),
-                    self._coordinate(now, car, fp, None),
-                ]
+                car.sent = None  # a re-initiation always comes with its coordinated path
+                out = [self._command(now, car, Command.INITIATE, car.mode)]
+                sent = self._coordinate(now, car, fp, None)
+                if sent is not None:
+                    out.append(sent)
+                return out
             return []
         car.autonomous = fp
         return self._decide(now, car, fp)
@@ -818,13 +822,18 @@ class RsuCore:
         elif action in (Action.SEND_INITIATION_SLOW, Action.SEND_INITIATION_FAST):
             out.append(self._command(now, car, Command.INITIATE, mode))
             self.counters["initiations"] += 1
-            out.append(self._coordinate(now, car, path, plan if mode == Mode.C_FAST else None))
+            car.sent = None  # a new initiation always comes with its coordinated path
+            sent = self._coordinate(now, car, path, plan if mode == Mode.C_FAST else None)
+            if sent is not None:
+                out.append(sent)
         elif action == Action.FORGET:
             self.forget(vehicle)
         elif mode == Mode.AUTO:
             self._reserve(now, car, path.points)
         elif isinstance(path, AutonomousPath):
-            out.append(self._coordinate(now, car, path, plan))
+            sent = self._coordinate(now, car, path, plan)
+            if sent is not None:
+                out.append(sent)
         else:
             self.table.touch(vehicle, now)
         return out
@@ -863,6 +872,25 @@ class RsuCore:
             out.extend(self._apply(now, other, event, other.autonomous, None))
         return out
 
+    def _unchanged(self, now: float, car: _Car, points: FloatArray) -> bool:
+        """Under the coordinated path's change rule (``services.model.send_rule``): True
+        when the last coordinated path sent to ``car`` stands instead of ``points`` (it is
+        still the car's reservation in the table, in the same mode, covers now, was sent
+        less than ``cp_refresh_s`` ago and deviates by at most ``cp_change_m``). Then the
+        table keeps it, refreshed: the car drives it, so the table holds what it drives."""
+        cfg = self.config
+        if cfg.cp_change_m is None:
+            return False
+        rule = car.sent
+        entry = self.table.get(car.vehicle)
+        if rule is None or entry is None or entry.points is not rule.last_points:
+            rule = car.sent = ChangeRule(cfg.cp_change_m, cfg.cp_refresh_s)
+        if rule.why(now, points, car.mode) is not None:
+            return False
+        self.table.touch(car.vehicle, now)
+        self.counters["cp_unchanged"] += 1
+        return True
+
     def _command(self, now: float, car: _Car, command: Command, mode: Mode) -> Outgoing:
         car.pending = _Pending(command, mode, now)
         return Outgoing(car.vehicle, ModeCommand(self._header(now), car.vehicle, command, mode))
@@ -872,8 +900,9 @@ class RsuCore:
 
     def _coordinate(
         self, now: float, car: _Car, path: VehiclePath, plan: SpeedPlan | None
-    ) -> Outgoing:
-        """Compute (unless given), reserve and send the car's coordinated path."""
+    ) -> Outgoing | None:
+        """Compute (unless given), reserve and send the car's coordinated path; None when
+        the send rule keeps the last one sent (``cp_change_m``: :meth:`_unchanged`)."""
         if plan is None:
             firm = car.held_short and car.mode == Mode.C_SLOW
             # a car committed itself waits only for moving bodies (as in _zone_taken): two
@@ -890,7 +919,6 @@ class RsuCore:
             plan = self.velocity.plan(
                 car.vehicle, path, car.mode, now, self.table, firm=firm, admissible=in_order
             )
-        car.held_short = plan.short
         points, speeds = plan.points, plan.speeds
         cap = self.config.max_points
         if cap is not None and points.shape[0] > cap:
@@ -898,6 +926,12 @@ class RsuCore:
             keep = np.unique(np.round(np.linspace(0, points.shape[0] - 1, cap)).astype(np.int64))
             points, speeds = points[keep], speeds[keep]
             self.counters["thinned_paths"] += 1
+        if self.config.cp_change_m is not None:
+            points = np.array(points, dtype=np.float64)
+            points.flags.writeable = False  # shared by the table and the rule (identity)
+            if self._unchanged(now, car, points):
+                return None
+        car.held_short = plan.short
         self._reserve(now, car, points)
         self.counters["coordinated_paths"] += 1
         self.counters[f"plan_{plan.kind}"] += 1

@@ -239,22 +239,36 @@ def project(xy: FloatArray, x: float, y: float) -> tuple[float, float, int]:
     """Where the point (x, y) [m] projects on the polyline ``xy`` (M >= 2, 2+ columns):
     (arc length [m], distance from the line [m], index of the segment's first point).
     Repeated points are skipped; ``(0, distance to the first point, 0)`` for a polyline
-    that never moves."""
+    that never moves. One point of :func:`project_many`."""
+    s, dist, index = project_many(xy, np.array([[x, y]], dtype=np.float64))
+    return float(s[0]), float(dist[0]), int(index[0])
+
+
+def project_many(
+    xy: FloatArray, points: FloatArray
+) -> tuple[FloatArray, FloatArray, npt.NDArray[np.int64]]:
+    """:func:`project` of every row of ``points`` (K, 2+) at once: arc lengths [m],
+    distances [m] and segment indices, each (K,). One (K, M) pass instead of K calls
+    (issue 14: the RSU projected a leader's path point by point)."""
     pts = np.asarray(xy, dtype=np.float64)[:, :2]
+    q = np.asarray(points, dtype=np.float64)[:, :2]
+    k = q.shape[0]
     seg = np.diff(pts, axis=0)
     seg_len = np.hypot(seg[:, 0], seg[:, 1])
     ok = seg_len > _EPS
     if pts.shape[0] < 2 or not ok.any():
-        return 0.0, math.hypot(x - float(pts[0, 0]), y - float(pts[0, 1])), 0
+        dist0 = np.hypot(q[:, 0] - float(pts[0, 0]), q[:, 1] - float(pts[0, 1]))
+        return np.zeros(k), dist0, np.zeros(k, dtype=np.int64)
     unit = np.where(ok[:, None], seg / np.where(ok, seg_len, 1.0)[:, None], 0.0)
-    rel = np.column_stack([x - pts[:-1, 0], y - pts[:-1, 1]])
-    along = np.clip(np.einsum("ij,ij->i", rel, unit), 0.0, seg_len)
-    foot = pts[:-1] + unit * along[:, None]
-    dist = np.hypot(foot[:, 0] - x, foot[:, 1] - y)
-    dist[~ok] = np.inf
-    i = int(np.argmin(dist))
-    s0 = float(np.concatenate(([0.0], np.cumsum(seg_len)))[i])
-    return s0 + float(along[i]), float(dist[i]), i
+    rel = q[:, None, :] - pts[None, :-1, :]  # (K, M-1, 2)
+    along = np.clip(np.einsum("kij,ij->ki", rel, unit), 0.0, seg_len)
+    foot = pts[None, :-1, :] + unit[None, :, :] * along[:, :, None]
+    dist = np.hypot(foot[:, :, 0] - q[:, 0:1], foot[:, :, 1] - q[:, 1:2])
+    dist[:, ~ok] = np.inf
+    index = np.argmin(dist, axis=1)
+    rows = np.arange(k)
+    start = np.concatenate(([0.0], np.cumsum(seg_len)))
+    return start[index] + along[rows, index], dist[rows, index], index.astype(np.int64)
 
 
 def heading_of(xy: FloatArray, index: int) -> float | None:

@@ -395,10 +395,10 @@ class VelocityManager:
             if first[1] > lane or first[0] <= 0.0:
                 continue
             pts = entry.points
-            proj = [paths.project(tr.xy, float(x), float(y)) for x, y in pts[:, :2].tolist()]
-            on = np.array([off <= lane for _, off, _ in proj])
+            s_all, off, _ = paths.project_many(tr.xy, pts)
+            on = off <= lane
             stay = int(np.argmin(on)) if not on.all() else pts.shape[0]
-            s_l = np.maximum.accumulate(np.array([sv for sv, _, _ in proj[:stay]]))
+            s_l = np.maximum.accumulate(s_all[:stay])
             out.append((pts[:stay, 2].copy(), s_l, 1.0 if stay == pts.shape[0] else 0.0))
         return out
 

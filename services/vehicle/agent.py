@@ -8,7 +8,7 @@ daemon) passes ``now`` and inputs in and sends what comes out:
 - ``tick(now, ego, sensed)`` at the planning rate (10 Hz): plans, and returns
   the messages to send (the future path broadcast and, while coordinated, the
   autonomous path to the RSU; each every tick or, by the scenario's ``fp_rule`` /
-  ``ap_rule``, on change: ``services.vehicle.fp_rule``) and the next deadline;
+  ``ap_rule``, on change: ``services.model.send_rule``) and the next deadline;
 - ``command(body)`` at the physics rate (20 Hz): the acceleration command that
   tracks the last planned speed profile (the controller).
 
@@ -42,6 +42,7 @@ from protocol.messages import (
 )
 from services.model.kinematics import BodyState, Limits, TruthState
 from services.model.scenario import Scenario, VehicleParams
+from services.model.send_rule import ChangeRule, change_rule
 from services.vehicle.coordination import (
     RsuReach,
     VehicleEvent,
@@ -51,7 +52,6 @@ from services.vehicle.coordination import (
     owner_refusal,
     owner_zone_exit,
 )
-from services.vehicle.fp_rule import ChangeRule, change_rule
 from services.vehicle.future_path import future_path_points
 from services.vehicle.planner import AutonomousPlanner, Coordination, Plan, Reason
 from services.vehicle.profile import FloatArray
@@ -144,7 +144,7 @@ class VehicleAgent:
     seq: int = field(init=False, default=0)
     counters: dict[str, int] = field(init=False)
     fp_rule: ChangeRule | None = field(init=False, default=None)
-    """When the future path is sent (``services.vehicle.fp_rule``); None: every tick."""
+    """When the future path is sent (``services.model.send_rule``); None: every tick."""
     fp_hold_s: float = field(init=False, default=0.0)
     """How long a received future path is kept [s] (``Scenario.fp_hold_s``)."""
     ap_rule: ChangeRule | None = field(init=False, default=None)
@@ -187,12 +187,15 @@ class VehicleAgent:
             self.reach[r.id] = RsuReach(r.intersection, float(cx), float(cy), r.coverage_m)
         self.fp_rule = change_rule(self.spec.params)
         self.fp_hold_s = self.scenario.fp_hold_s(self.spec.params.fp_stale_s)
-        self.ap_rule = change_rule(self.spec.params, autonomous=True)
+        self.ap_rule = change_rule(self.spec.params, stream="ap")
         # the RSU answers every autonomous path with a coordinated path: when the former is
-        # sent only on change, the latter may come that much later
+        # sent only on change, the latter may come that much later; and when the RSU sends
+        # its coordinated path only on change (cp_rule), up to cp_refresh_s later still
         vp = self.spec.params
-        self.cp_timeout_s = p.coordinated_timeout_s + (
-            0.0 if self.ap_rule is None else vp.ap_refresh_s
+        self.cp_timeout_s = (
+            p.coordinated_timeout_s
+            + (0.0 if self.ap_rule is None else vp.ap_refresh_s)
+            + (0.0 if vp.cp_rule == "periodic" else vp.cp_refresh_s)
         )
 
     @property

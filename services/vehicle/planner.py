@@ -86,7 +86,7 @@ from enum import StrEnum
 import numpy as np
 
 from protocol.messages import FuturePath
-from services.model.geometry import Polyline, footprint, visible_mask, wrap_angle
+from services.model.geometry import IntArray, Polyline, footprint, visible_mask, wrap_angle
 from services.model.kinematics import Limits, TruthState, curve_speed_cap
 from services.model.scenario import SAME_APPROACH_RAD, Crossing, Scenario, VehicleParams
 from services.vehicle.profile import (
@@ -211,7 +211,7 @@ class AutonomousPlanner:
     params: VehicleParams = field(default_factory=VehicleParams)
     route: Polyline = field(init=False)
     crossings: list[Crossing] = field(init=False)
-    _zones: dict[str, FloatArray] = field(init=False)
+    _zones: dict[str, _ZoneBox] = field(init=False)
     _crossing_lanes: dict[str, frozenset[str]] = field(init=False)
     _stop_offset: dict[str, float] = field(init=False)
     _priority: dict[str, frozenset[str]] = field(init=False)
@@ -222,7 +222,9 @@ class AutonomousPlanner:
     def __post_init__(self) -> None:
         self.route = self.scenario.route(self.route_id)
         self.crossings = self.scenario.crossings(self.route_id, self.length)
-        self._zones = {i.id: self.scenario.zone_polygon(i.id) for i in self.scenario.intersections}
+        self._zones = {
+            i.id: _ZoneBox.of(self.scenario.zone_polygon(i.id)) for i in self.scenario.intersections
+        }
         self._stop_offset = {i.id: i.stop_line_offset_m for i in self.scenario.intersections}
         # the lanes whose traffic crosses or merges with this route, per intersection: only
         # these are watched round a blind corner or yielded to when known from the sensors
@@ -488,10 +490,11 @@ class AutonomousPlanner:
             if fp_id == self.vehicle_id:
                 continue
             seen.add(fp_id)
-            theirs = self._fp_interval(now, fp, zone, crossing)
+            where = _InZone.of(fp, zone)
+            theirs = self._fp_interval(now, fp, zone, crossing, where)
             if theirs is None:
                 continue
-            arrival = self._fp_arrival(fp, zone, crossing)
+            arrival = self._fp_arrival(fp, zone, crossing, where)
             if arrival is None:
                 continue  # its path does not cross ours here
             if self._order.get((crossing.intersection, fp_id), False) and theirs.planned:
@@ -663,18 +666,18 @@ class AutonomousPlanner:
             now, d_zone, ego.speed, offset, heading, self._approach.get(crossing.intersection)
         )
 
-    def _fp_arrival(self, fp: FuturePath, zone: FloatArray, crossing: Crossing) -> _Arrival | None:
+    def _fp_arrival(
+        self, fp: FuturePath, zone: _ZoneBox, crossing: Crossing, where: _InZone
+    ) -> _Arrival | None:
         """Arrival of a car known from its future path, or None when its path does not come
         within ``d_margin_m`` of this route in the zone (opposing traffic, a turn that does
         not cross) or it comes from this car's own approach (followed, not crossed)."""
         pts = fp.points
-        grown = _grow_box(zone, fp.length / 2.0)
-        inside = _in_box(pts[:, 0], pts[:, 1], grown)
-        here_inside = bool(_in_box(np.array([fp.x]), np.array([fp.y]), grown)[0])
+        here_inside = where.here
         offset = self._stop_offset[crossing.intersection]
         margin = self.scenario.params.d_margin_m
-        if np.any(inside):
-            idx = np.flatnonzero(inside)
+        idx = where.idx
+        if idx.shape[0]:
             _s, lat = self.route.project_many(np.ascontiguousarray(pts[idx, 0:2]))
             close = bool(np.any(np.abs(lat) < margin))
             exits = idx[-1] < pts.shape[0] - 1
@@ -699,8 +702,7 @@ class AutonomousPlanner:
             if not self._lane_crosses(fp.x, fp.y, fp.heading, crossing):
                 return None
             heading = fp.heading
-            cx, cy = _box_center(zone)
-            d_zone = max(float(np.hypot(fp.x - cx, fp.y - cy)) - _box_radius(zone), 0.0)
+            d_zone = max(float(np.hypot(fp.x - zone.cx, fp.y - zone.cy)) - zone.radius, 0.0)
         own = self.route.heading_at(crossing.s_in)
         if abs(wrap_angle(heading - own)) <= SAME_APPROACH_RAD:
             return None  # the same approach: car following, not right of way
@@ -719,24 +721,22 @@ class AutonomousPlanner:
         return found[0] in self._crossing_lanes.get(crossing.intersection, frozenset())
 
     def _fp_interval(
-        self, now: float, fp: FuturePath, zone: FloatArray, crossing: Crossing
+        self, now: float, fp: FuturePath, zone: _ZoneBox, crossing: Crossing, where: _InZone
     ) -> _Known | None:
         """Occupancy of the zone by a car known from its future path."""
         pts = fp.points
         if pts.shape[0] == 0:
             return None
-        grown = _grow_box(zone, fp.length / 2.0)
-        inside = _in_box(pts[:, 0], pts[:, 1], grown)
-        here_inside = bool(_in_box(np.array([fp.x]), np.array([fp.y]), grown)[0])
-        if np.any(inside):
-            idx = np.flatnonzero(inside)
+        here_inside = where.here
+        idx = where.idx
+        if idx.shape[0]:
             t_in = now if here_inside else float(pts[idx[0], 2])
             t_out = np.inf if idx[-1] == pts.shape[0] - 1 else float(pts[idx[-1], 2])
             return _Known(Interval(t_in, t_out), planned=True)
         if here_inside:
             return _Known(Interval(now, now + 1.0), planned=True)
         # not entering within its horizon: waiting before the zone, far away, or gone
-        cx, cy = _box_center(zone)
+        cx, cy = zone.cx, zone.cy
         d_now = float(np.hypot(fp.x - cx, fp.y - cy))
         d_end = float(np.hypot(pts[-1, 0] - cx, pts[-1, 1] - cy))
         if d_end > d_now + 0.5:
@@ -746,12 +746,11 @@ class AutonomousPlanner:
         return _Known(self._fp_earliest(now, fp, zone, crossing), planned=False)
 
     def _fp_earliest(
-        self, now: float, fp: FuturePath, zone: FloatArray, crossing: Crossing
+        self, now: float, fp: FuturePath, zone: _ZoneBox, crossing: Crossing
     ) -> Interval:
         """Earliest occupancy of a car known from its future path, from its current state."""
-        cx, cy = _box_center(zone)
-        radius = _box_radius(zone)
-        d_now = float(np.hypot(fp.x - cx, fp.y - cy))
+        radius = zone.radius
+        d_now = float(np.hypot(fp.x - zone.cx, fp.y - zone.cy))
         dist = max(d_now - radius, 0.0)
         virtual = Crossing(crossing.intersection, dist, dist + 2.0 * radius, 0.0, 0.0)
         return self._earliest_interval(now, 0.0, fp.speed, virtual, fp.length)
@@ -856,25 +855,47 @@ def line_arrival(d_line: float, speed: float, decel: float) -> float:
     return d_line / max(v, ARRIVAL_FLOOR_MPS) + v / (2.0 * decel)
 
 
-def _in_box(x: FloatArray, y: FloatArray, box: tuple[float, float, float, float]) -> FloatArray:
-    x0, y0, x1, y1 = box
-    return np.asarray((x >= x0) & (x <= x1) & (y >= y0) & (y <= y1))
+@dataclass(frozen=True, slots=True)
+class _ZoneBox:
+    """An intersection's zone as the yield rules use it, computed once (issue 14: these
+    reductions over the polygon, per future path per tick, were a tenth of a traffic
+    run): its axis-aligned bounds, centre [m] and the radius of the circle a square of
+    its corner distance holds [m]."""
+
+    x0: float
+    y0: float
+    x1: float
+    y1: float
+    cx: float
+    cy: float
+    radius: float
+
+    @classmethod
+    def of(cls, zone: FloatArray) -> _ZoneBox:
+        cx, cy = float(zone[:, 0].mean()), float(zone[:, 1].mean())
+        return cls(
+            float(zone[:, 0].min()),
+            float(zone[:, 1].min()),
+            float(zone[:, 0].max()),
+            float(zone[:, 1].max()),
+            cx,
+            cy,
+            float(np.min(np.hypot(zone[:, 0] - cx, zone[:, 1] - cy)) / np.sqrt(2.0)),
+        )
 
 
-def _grow_box(zone: FloatArray, margin: float) -> tuple[float, float, float, float]:
-    """Axis-aligned bounding box of the zone grown by ``margin`` [m]."""
-    return (
-        float(zone[:, 0].min()) - margin,
-        float(zone[:, 1].min()) - margin,
-        float(zone[:, 0].max()) + margin,
-        float(zone[:, 1].max()) + margin,
-    )
+@dataclass(frozen=True, slots=True)
+class _InZone:
+    """Where a future path is in a zone's box grown by half the car's length: the indices
+    of its points inside (ascending) and whether the car is inside now."""
 
+    idx: IntArray
+    here: bool
 
-def _box_center(zone: FloatArray) -> tuple[float, float]:
-    return float(zone[:, 0].mean()), float(zone[:, 1].mean())
-
-
-def _box_radius(zone: FloatArray) -> float:
-    cx, cy = _box_center(zone)
-    return float(np.min(np.hypot(zone[:, 0] - cx, zone[:, 1] - cy)) / np.sqrt(2.0))
+    @classmethod
+    def of(cls, fp: FuturePath, zone: _ZoneBox) -> _InZone:
+        m = fp.length / 2.0
+        x0, y0, x1, y1 = zone.x0 - m, zone.y0 - m, zone.x1 + m, zone.y1 + m
+        x, y = fp.points[:, 0], fp.points[:, 1]
+        idx = np.flatnonzero((x >= x0) & (x <= x1) & (y >= y0) & (y <= y1))
+        return cls(idx, x0 <= fp.x <= x1 and y0 <= fp.y <= y1)

@@ -610,7 +610,15 @@ def test_rsu_params_defaults_and_overrides() -> None:
 def test_override_tables_have_the_fields_of_their_table() -> None:
     assert set(RsuParamsOverrides.model_fields) == set(RsuParams.model_fields)
     # the future-path rule is scenario-wide: every receiver's expiry follows it
-    scenario_wide = {"fp_rule", "fp_change_m", "fp_refresh_s", "ap_rule", "ap_refresh_s"}
+    scenario_wide = {
+        "fp_rule",
+        "fp_change_m",
+        "fp_refresh_s",
+        "ap_rule",
+        "ap_refresh_s",
+        "cp_rule",
+        "cp_refresh_s",
+    }
     assert (
         set(VehicleParamsOverrides.model_fields) == set(VehicleParams.model_fields) - scenario_wide
     )

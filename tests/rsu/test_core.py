@@ -403,6 +403,39 @@ def test_future_paths_keep_a_coordinated_car_alive() -> None:
     assert core.mode_of("A") == Mode.C_FAST and core.counters["expired"] == 0
 
 
+def test_cp_rule_keeps_the_last_coordinated_path_while_it_holds() -> None:
+    """Under the coordinated path's change rule (``cp_change_m``), a C_FAST car that drives
+    as planned gets no new coordinated path until ``cp_refresh_s`` has passed; its table
+    entry stays the path it was sent (the one it drives), refreshed; a changed plan or a
+    new initiation is sent at once. Periodic (the default) answers every one."""
+    for rule, expect in ((None, 10), (0.5, 2)):
+        core = RsuCore(config(cp_change_m=rule, cp_refresh_s=0.5), listen_s=0.0)
+        out = core.on_message(0.0, fp("A", a_at(6.0), EAST, VMAX, 0.0))
+        first = out[1].message
+        assert isinstance(first, CoordinatedPath)
+        core.on_message(0.05, fp("A", a_at(5.95), EAST, VMAX, 0.05, Mode.C_FAST, seq=2))
+        sent = []
+        for k in range(1, 11):
+            now = k / 10
+            path = ap("A", a_at(6.0 - now), EAST, VMAX, now, Mode.C_FAST)
+            o = core.on_message(now, path, "rsu-1")
+            sent += [now for m in o if isinstance(m.message, CoordinatedPath)]
+            entry = core.table.get("A")
+            assert entry is not None and core.table.is_live("A", now)
+            if rule is not None and now < 0.5:
+                assert entry.points is not None and np.array_equal(entry.points, first.points)
+        assert len(sent) == expect, sent
+        if rule is not None:
+            assert sent == pytest.approx([0.5, 1.0])  # the refreshes only
+            assert core.counters["cp_unchanged"] == 10 - expect
+    # a plan that changed by more than the deviation is sent at once
+    core = RsuCore(config(cp_change_m=0.5), listen_s=0.0)
+    core.on_message(0.0, fp("A", a_at(6.0), EAST, VMAX, 0.0))
+    core.on_message(0.05, fp("A", a_at(5.95), EAST, VMAX, 0.05, Mode.C_FAST, seq=2))
+    slower = core.on_message(0.1, ap("A", a_at(5.9), EAST, VMAX / 2, 0.1, Mode.C_FAST), "rsu-1")
+    assert kinds(slower) == [("A", "CoordinatedPath", Mode.C_FAST)]
+
+
 # -- what is ignored ----------------------------------------------------------------------
 
 

@@ -14,6 +14,7 @@ through.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -150,8 +151,15 @@ def _check_invariant(core: RsuCore, cars: dict[str, Car], now: float) -> None:
         assert car.changes <= rsu_core.MAX_MODE_CHANGES + 2, (car.vid, car.changes)
 
 
-def _drive(policy: Policy, starts: list[tuple[str, float, float]], seconds: float) -> None:
-    config = rsu_config(SCENARIO, "rsu1", policy)
+def _drive(
+    policy: Policy,
+    starts: list[tuple[str, float, float]],
+    seconds: float,
+    cp_change_m: float | None = None,
+) -> None:
+    # cp_change_m: the coordinated path's change rule (services.model.send_rule); the cars
+    # here follow the last coordinated path they were sent, as real ones do
+    config = dataclasses.replace(rsu_config(SCENARIO, "rsu1", policy), cp_change_m=cp_change_m)
     core = RsuCore(config, listen_s=0.0)
     cars = {f"c{i}": Car(f"c{i}", r, s, v) for i, (r, s, v) in enumerate(starts)}
     steps = round(seconds / DT)
@@ -231,6 +239,7 @@ def situations(draw: st.DrawFn, n_max: int = 5) -> list[tuple[str, float, float]
     return _starts(draw, n_max)
 
 
+@pytest.mark.parametrize("cp_change_m", [None, 0.5], ids=["cp-periodic", "cp-change"])
 @pytest.mark.parametrize("policy", [Policy.PAPER, Policy.SLOT])
 @settings(
     max_examples=4,
@@ -240,9 +249,9 @@ def situations(draw: st.DrawFn, n_max: int = 5) -> list[tuple[str, float, float]
 )
 @given(starts=situations())
 def test_invariant_holds_for_random_n_car_situations(
-    policy: Policy, starts: list[tuple[str, float, float]]
+    policy: Policy, cp_change_m: float | None, starts: list[tuple[str, float, float]]
 ) -> None:
-    _drive(policy, starts, 45.0)
+    _drive(policy, starts, 45.0, cp_change_m)
 
 
 # A situation random search found where the invariant does not hold yet (issue 12,

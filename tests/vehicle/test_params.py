@@ -26,6 +26,8 @@ NEW_VALUES = {
     "fp_refresh_s": 2.0,
     "ap_rule": "change",
     "ap_refresh_s": 0.5,
+    "cp_rule": "change",
+    "cp_refresh_s": 0.7,
 }
 
 

@@ -16,21 +16,27 @@ from protocol.keys import Stream
 from protocol.messages import Message, Mode
 from services.model.results import RunResult
 from services.model.scenario import Scenario, ScenarioError, VehicleParams, parse_scenario
+from services.model.send_rule import ChangeRule, change_rule, deviation_m
 from services.model.types import Policy, RunMode
 from services.rsu.config import rsu_config
 from services.sim.harness import SimOptions, Simulation
 from services.vehicle.agent import vehicle_agent
-from services.vehicle.fp_rule import ChangeRule, change_rule, deviation_m
 from tests.vehicle.conftest import PAPER
 
 CHANGE = '\n[vehicle_params]\nfp_rule = "change"\n'
 BOTH = CHANGE + 'ap_rule = "change"\n'
+ALL = BOTH + 'cp_rule = "change"\n'
 
 
 def _path(now: float, x0: float = 0.0, v: float = 10.0, n: int = 11) -> np.ndarray:
     """A straight path along x at speed v [m/s] from x0 at now, 10 s ahead."""
     t = now + np.linspace(0.0, 10.0, n)
     return np.column_stack((x0 + v * (t - now), np.zeros(n), t))
+
+
+@pytest.fixture(scope="module")
+def paper() -> Scenario:
+    return _changed("")
 
 
 def _changed(text: str = CHANGE) -> Scenario:
@@ -126,6 +132,21 @@ def test_change_rule_lengthens_every_receivers_expiry() -> None:
     # the autonomous path's rule, and the car's patience for coordinated paths
     assert agent.ap_rule is not None and agent.ap_rule.refresh_s == vp.ap_refresh_s
     assert agent.cp_timeout_s == pytest.approx(sc.params.coordinated_timeout_s + vp.ap_refresh_s)
+    assert rsu_config(sc, "rsu1", Policy.PAPER).cp_change_m is None  # cp_rule periodic
+
+
+def test_cp_rule_reaches_the_rsu_and_the_cars_patience() -> None:
+    sc = _changed(ALL + "cp_refresh_s = 0.7\n")
+    vp = sc.vehicle_params("A")
+    cfg = rsu_config(sc, "rsu1", Policy.PAPER)
+    assert (cfg.cp_change_m, cfg.cp_refresh_s) == (vp.fp_change_m, 0.7)
+    agent = vehicle_agent(sc, "A", True)
+    p = sc.params
+    assert agent.cp_timeout_s == pytest.approx(p.coordinated_timeout_s + vp.ap_refresh_s + 0.7)
+    rule = change_rule(vp, stream="cp")
+    assert rule is not None and rule.refresh_s == 0.7
+    with pytest.raises(ValueError, match="stream"):
+        change_rule(vp, stream="beacon")
 
 
 @pytest.mark.parametrize(
@@ -137,6 +158,9 @@ def test_change_rule_lengthens_every_receivers_expiry() -> None:
         ("fp_refresh_s = 0.05\n", "vehicle_params.fp_refresh_s", "planning period"),
         ('ap_rule = "change"\nap_refresh_s = 0.05\n', "vehicle_params.ap_refresh_s", "period"),
         ('ap_rule = "never"\n', "vehicle_params.ap_rule", "periodic"),
+        ('cp_rule = "change"\ncp_refresh_s = 0.05\n', "vehicle_params.cp_refresh_s", "period"),
+        ('cp_rule = "change"\ncp_refresh_s = 9.8\n', "vehicle_params.cp_refresh_s", "t_free_s"),
+        ('cp_rule = "often"\n', "vehicle_params.cp_rule", "periodic"),
     ],
 )
 def test_bad_rule_settings_name_field_and_reason(extra: str, field: str, reason: str) -> None:
@@ -151,6 +175,7 @@ def test_vehicle_params_defaults() -> None:
     vp = VehicleParams()
     assert (vp.fp_rule, vp.fp_change_m, vp.fp_refresh_s) == ("periodic", 0.5, 1.0)
     assert (vp.ap_rule, vp.ap_refresh_s) == ("periodic", 0.2)
+    assert (vp.cp_rule, vp.cp_refresh_s) == ("periodic", 0.5)
 
 
 # ------------------------------------------------------------------ the paper run
@@ -176,7 +201,8 @@ def test_paper_run_with_the_change_rule(paper: Scenario) -> None:
     base, base_sent = _run(paper, 1)
     change, change_sent = _run(_changed(), 1)
     both, both_sent = _run(_changed(BOTH), 1)
-    for run in (change, both):
+    every, every_sent = _run(_changed(ALL), 1)
+    for run in (change, both, every):
         assert run.collisions == 0 and run.all_finished
         for vid, v in base.vehicles.items():
             assert v.passing_time_s is not None
@@ -192,3 +218,6 @@ def test_paper_run_with_the_change_rule(paper: Scenario) -> None:
 
     assert kbps(change_sent, Stream.FP) < 5.0  # about 3 kbps per car, from 20 at 10 Hz
     assert kbps(both_sent) <= 15.0  # issue 14's target, every stream: about 12, from 38
+    # cp_rule: the RSU's coordinated paths (on the cmd stream) only on change, 0.5 s refresh
+    assert every_sent[Stream.CMD][1] < 0.6 * both_sent[Stream.CMD][1]  # measured: 0.42
+    assert kbps(every_sent) < kbps(both_sent) - 1.5  # measured: about 9.0, from 11.6

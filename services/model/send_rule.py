@@ -1,4 +1,5 @@
-"""When to send the future path: the change-triggered rule (issue 14, bandwidth).
+"""When to send a path: the change-triggered rule (issue 14, bandwidth), for the car's
+future path and autonomous path and the RSU's coordinated paths.
 
 The paper broadcasts the future path every planning tick (10 Hz): about 411 bytes
 x 10 = 33 kbps per car. Most of those paths say what the previous one said: a car
@@ -34,6 +35,14 @@ separate choice, off by default, because coordination then reacts up to 0.2 s la
 on the paper run it changes nothing, on the demand experiment one seed's delay moved
 by +2.3 s and another's by -3.2 s (README, "Real daemons, bandwidth and latency").
 
+The RSU's coordinated path to each car may follow it too: ``cp_rule = "change"``,
+``cp_refresh_s`` (0.5 s). The RSU then sends a new coordinated path only when it
+deviates from the last one it sent that car by more than ``fp_change_m``, on a mode
+change, when the last one no longer covers ``now``, and at least every
+``cp_refresh_s``; otherwise the last one stays the car's reservation (the car follows
+it, so the table keeps what the car drives: ``services.rsu.core``). The car's
+``coordinated_timeout_s`` grows by ``cp_refresh_s`` (``services.vehicle.agent``).
+
 Pure: the caller passes ``now`` [s] and the path points (x, y, t) with absolute
 times [s]; the rule remembers the last path it said to send.
 """
@@ -46,8 +55,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from protocol.messages import Mode
+from services.model.geometry import FloatArray
 from services.model.scenario import VehicleParams
-from services.vehicle.profile import FloatArray
 
 __all__ = ["ChangeRule", "change_rule", "deviation_m"]
 
@@ -113,10 +122,18 @@ class ChangeRule:
         return None
 
 
-def change_rule(params: VehicleParams, *, autonomous: bool = False) -> ChangeRule | None:
-    """The car's rule for its future path (or, ``autonomous``, its autonomous path to the
-    RSU) from its ``[vehicle_params]``; None for the periodic rule (send every tick)."""
-    if (params.ap_rule if autonomous else params.fp_rule) == "periodic":
+def change_rule(params: VehicleParams, *, stream: str = "fp") -> ChangeRule | None:
+    """The rule of one stream from the scenario's ``[vehicle_params]``: ``"fp"`` the car's
+    future path, ``"ap"`` its autonomous path to the RSU, ``"cp"`` the RSU's coordinated
+    path to a car; None for the periodic rule (send every time)."""
+    rules = {
+        "fp": (params.fp_rule, params.fp_refresh_s),
+        "ap": (params.ap_rule, params.ap_refresh_s),
+        "cp": (params.cp_rule, params.cp_refresh_s),
+    }
+    if stream not in rules:
+        raise ValueError(f"stream must be one of {sorted(rules)}, got {stream!r}")
+    rule, refresh = rules[stream]
+    if rule == "periodic":
         return None
-    refresh = params.ap_refresh_s if autonomous else params.fp_refresh_s
     return ChangeRule(params.fp_change_m, refresh)
