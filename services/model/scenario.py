@@ -793,8 +793,10 @@ class Scenario:
                     f"({1.0 / p.planning_hz:g} s)",
                 )
             # the car follows a coordinated path up to its (grown) timeout after it came
-            held = vp.cp_refresh_s + p.coordinated_timeout_s + (
-                vp.ap_refresh_s if vp.ap_rule == "change" else 0.0
+            held = (
+                vp.cp_refresh_s
+                + p.coordinated_timeout_s
+                + (vp.ap_refresh_s if vp.ap_rule == "change" else 0.0)
             )
             if held > p.t_free_s:
                 raise self._err(

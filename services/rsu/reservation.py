@@ -383,6 +383,7 @@ class ReservationTable:
         self._row0 = np.zeros(cap, dtype=np.int64)  # its blocks: rows row0 .. row0 + nrow
         self._nrow = np.zeros(cap, dtype=np.int64)
         self._npts = np.zeros(cap, dtype=np.int64)  # points in _dense
+        self._has_head = np.zeros(cap, dtype=np.bool_)  # _head[s] is stored (not None)
         # blocks of every car, packed (rows of a removed car: slot -1 until compacted)
         bcap = 64
         self._rows = 0
@@ -454,6 +455,7 @@ class ReservationTable:
             self._row0 = np.concatenate([self._row0, np.zeros(grow, dtype=np.int64)])
             self._nrow = np.concatenate([self._nrow, np.zeros(grow, dtype=np.int64)])
             self._npts = np.concatenate([self._npts, np.zeros(grow, dtype=np.int64)])
+            self._has_head = np.concatenate([self._has_head, np.zeros(grow, dtype=np.bool_)])
         self._names.append("")
         self._orig.append(_EMPTY)
         self._dense.append(_EMPTY)
@@ -572,6 +574,7 @@ class ReservationTable:
         self._orig[s] = pts
         self._dense[s] = dense
         self._head[s] = head
+        self._has_head[s] = head is not None
         self._entry[s] = None
         self._used[s] = True
         self._updated[s] = float(now)
@@ -602,6 +605,7 @@ class ReservationTable:
         self._updated[s] = -np.inf
         self._orig[s] = self._dense[s] = _EMPTY
         self._head[s] = self._entry[s] = None
+        self._has_head[s] = False
         self._names[s] = ""
         self._free.append(s)
         return True
@@ -939,7 +943,7 @@ class ReservationTable:
             with np.errstate(divide="ignore", invalid="ignore"):
                 out = step / length[:, None]
         head = self._head
-        for s in np.unique(owner).tolist():
+        for s in np.unique(owner[self._has_head[owner]]).tolist():
             stored = head[s]
             if stored is not None:
                 mine = owner == s

@@ -77,6 +77,7 @@ from services.rsu import paths
 from services.rsu.reservation import (
     LANE_SLACK_M,
     SAME_WAY_RAD,
+    Entry,
     ReservationTable,
     follow_distance,
 )
@@ -480,6 +481,7 @@ class VelocityManager:
         if tr.xy.shape[0] < 2:
             return limit
         box = _box(tr.xy)
+        near: list[tuple[Entry, float]] = []
         for other in table:
             entry = table.get(other)
             if other == vehicle or other in exclude or entry is None:
@@ -492,8 +494,15 @@ class VelocityManager:
                 box, float(p1[0]), float(p1[1]), lane
             ):
                 continue  # not in this lane
-            first = paths.project(tr.xy, float(entry.points[0, 0]), float(entry.points[0, 1]))
-            last = paths.project(tr.xy, float(entry.points[-1, 0]), float(entry.points[-1, 1]))
+            near.append((entry, lane))
+        if not near:
+            return limit
+        # first and last points of every car near the lane projected at once (issue 14)
+        ends = np.array([[e.points[0, :2], e.points[-1, :2]] for e, _ in near]).reshape(-1, 2)
+        s_end, off_end, i_end = paths.project_many(tr.xy, ends)
+        for k, (entry, lane) in enumerate(near):
+            first = (float(s_end[2 * k]), float(off_end[2 * k]))
+            last = (float(s_end[2 * k + 1]), float(off_end[2 * k + 1]), int(i_end[2 * k + 1]))
             if first[1] > lane or last[1] > lane or first[0] <= 0.0:
                 continue  # not in this lane, or not ahead
             theirs = paths.heading_of(entry.points, entry.points.shape[0] - 1)

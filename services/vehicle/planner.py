@@ -415,9 +415,16 @@ class AutonomousPlanner:
         out: list[_Constraint] = []
         lim = self.limits
         half_w = self.width / 2.0 + 0.3
-        for other in sensed:
-            corners = footprint(other.x, other.y, other.heading, other.length, other.width)
-            cs, lat = self.route.project_many(corners)
+        if not sensed:
+            return out
+        # every sensed car's corners projected at once (issue 14: one call per car was a
+        # tenth of a planning step in traffic); rows are independent, so the same numbers
+        corners = np.concatenate(
+            [footprint(o.x, o.y, o.heading, o.length, o.width) for o in sensed]
+        )
+        cs_all, lat_all = self.route.project_many(corners)
+        for k, other in enumerate(sensed):
+            cs, lat = cs_all[4 * k : 4 * k + 4], lat_all[4 * k : 4 * k + 4]
             on_path = (np.abs(lat) <= half_w) & (cs > ego.s)
             if not bool(np.any(on_path)):
                 # also a car crossing the path: corners on both sides of the route line
