@@ -7,6 +7,8 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from protocol.messages import AutonomousPath, FloatArray, Header, Mode, VehicleLimits
 from services.model.types import Policy
@@ -96,6 +98,29 @@ def test_zone_helpers() -> None:
     assert paths.zone_span(east + np.array([0.0, 10.0, 0.0]), zone) is None
     assert paths.zone_entry_time(east + np.array([0.0, 10.0, 0.0]), zone) == math.inf
     assert paths.polygon_centroid(zone + 5.0) == pytest.approx((5.0, 5.0))
+
+
+_coord = st.floats(-50.0, 50.0, allow_nan=False)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    line=st.lists(st.tuples(_coord, _coord), min_size=1, max_size=12),
+    points=st.lists(st.tuples(_coord, _coord), min_size=1, max_size=8),
+)
+def test_project_many_is_project_of_each_point_and_the_closest(
+    line: list[tuple[float, float]], points: list[tuple[float, float]]
+) -> None:
+    """Batching projections (issue 14) changes no number: each row alone gives the same
+    bits, and the answer is the closest point of the polyline (no vertex is closer)."""
+    xy = np.array(line, dtype=np.float64)
+    q = np.array(points, dtype=np.float64)
+    s, dist, index = paths.project_many(xy, q)
+    for k, (x, y) in enumerate(points):
+        assert paths.project(xy, x, y) == (s[k], dist[k], index[k])
+        nearest_vertex = float(np.min(np.hypot(xy[:, 0] - x, xy[:, 1] - y)))
+        assert 0.0 <= dist[k] <= nearest_vertex + 1e-9
+        assert 0.0 <= s[k] <= float(np.sum(np.hypot(*np.diff(xy, axis=0).T))) + 1e-9
 
 
 @pytest.mark.parametrize(
