@@ -411,9 +411,11 @@ def measure(
     run_dir: Path | None = None,
     phases: Sequence[str] = ("baseline", "flood", "flood_new_ids"),
     insecure: bool = False,
+    warm_up: bool = True,
 ) -> dict[str, Any]:
     """Run the phases (module docstring) against fresh daemons, signed with a throw-away
-    authority unless ``insecure``; their summaries."""
+    authority unless ``insecure``; their summaries. ``warm_up=False`` skips the unmeasured
+    first run (its only use is the memory figure: tests that check counts skip it)."""
     from services.model.scenario import load_scenario
 
     sc = load_scenario(scenario)
@@ -451,7 +453,8 @@ def measure(
         connect = [loc for node in actor_argv for loc in endpoints[node].locators]
         # one unmeasured run first: a daemon's first run allocates what it keeps (imports,
         # caches), which would read as growth of the first phase
-        _run_phase("warmup", 0.0, monitor_head, procs, directory, None)
+        if warm_up:
+            _run_phase("warmup", 0.0, monitor_head, procs, directory, None)
         for name in phases:
             flood = None
             if name != "baseline":

@@ -593,11 +593,12 @@ async def run_in_memory(
 @pytest.mark.parametrize("mode", [RunMode.RSU, RunMode.FP_ONLY])
 async def test_daemons_over_memory_match_the_in_process_harness(mode: RunMode) -> None:
     scenario = load_scenario(PAPER)
-    # speed 5, not 10: all the daemons share one event loop here, and a lane of the
+    # speed 4, not 10: all the daemons share one event loop here, and a lane of the
     # receive inbox keeps only its latest datagram (ReceivePolicy depth 1), so a loop
     # that falls behind coalesces future paths (at speed 10 on a 2-core machine the
-    # delivery ratio fell to 0.75; at 5 it is 0.99)
-    monitor = await run_in_memory(scenario, mode, speed=5.0, seed=1)
+    # delivery ratio fell to 0.75; at 5 it is 0.99 on a quiet machine, but 0.74-0.79
+    # once on 3 Dec 2026 on a slow one)
+    monitor = await run_in_memory(scenario, mode, speed=4.0, seed=1)
     result = monitor.result
     assert result is not None and monitor.exit_code == 0
     reference = simulate(scenario, SimOptions(mode=mode, seed=1))
