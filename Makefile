@@ -27,14 +27,14 @@ lint: install
 
 # `make test` is what CI runs (.ci/run sets CI): everything, the wheel installed in a fresh
 # venv included (tests/test_packaging.py). Tests marked `slow` run on CI, or with SLOW=1.
-# Two passes: the pure tests (virtual clock, no sockets) on every core (pytest-xdist), then
-# the `serial` ones alone (real time, daemons, the network lab; tests/conftest.py marks them),
-# so that no timing-sensitive test shares the CPU with another test.
+# Two passes at once (tests/passes.sh): the `serial` tests (real time, daemons, the network
+# lab; tests/conftest.py marks them) one at a time at normal priority, and beside them the
+# pure tests (virtual clock, no sockets) on every core (pytest-xdist) at idle priority
+# (SCHED_IDLE), so that no timing-sensitive test shares the CPU with another test.
 NOT_SLOW = $(if $(CI)$(SLOW),,and not slow)
 
 test: install sysdeps lint
-	$(BIN)/pytest -q -n auto -m "not serial $(NOT_SLOW)"
-	$(BIN)/pytest -q -m "serial $(NOT_SLOW)"
+	@bash tests/passes.sh $(BIN) "$(NOT_SLOW)"
 
 test-fast: install
 	$(BIN)/pytest -q -n auto -m "not serial and not slow"

@@ -120,6 +120,7 @@ def _no_deadlock(seed: int) -> tuple[int, bool, int]:
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(900)  # make test runs it at idle priority beside the serial pass
 def test_fp_only_never_deadlocks_over_100_seeds() -> None:
     """Every one of 100 seeds (start offsets and channel jitter) runs to the end: all cars
     finish, none collides. Marked ``slow`` (about 70 s: 100 full runs, one worker process
