@@ -141,6 +141,11 @@ BODY_CLEARANCE_M = 0.25
 """Two bodies whose sweeps through the zone come closer than twice this [m] cross or
 merge there (``RsuCore._bodies_meet``): opposing lanes 3.5 m apart keep 1.7 m."""
 
+HELD_REACH_M = 3.0
+"""A car whose reserved path ends at rest with another car's body within this [m]
+straight ahead of its front waits for that car (``RsuCore._held_by``): a queue's gap
+(follow gap plus the stop slack) with room to spare."""
+
 MODE_DWELL_S = 0.5
 """A car is promoted or released no sooner than this after its last mode change [s]
 (issue 12, cause 4: a follower flipped C_FAST <-> C_SLOW every 0.1 s)."""
@@ -639,6 +644,8 @@ class RsuCore:
                 continue
             if not (other.mode == Mode.C_FAST or self._committed(other)):
                 continue
+            if self._held_by(other, entry.points, car):
+                continue  # it waits for this car's body: waiting for it locks the box
             if crossing_only:
                 if swept is None:
                     swept = self._swept(points, car)
@@ -646,6 +653,30 @@ class RsuCore:
                     continue
             return vehicle
         return None
+
+    def _held_by(self, other: _Car, points: FloatArray, car: _Car) -> bool:
+        """``other``'s reserved path ``points`` ends at rest with ``car``'s body (as it
+        stands now) within ``HELD_REACH_M`` straight ahead of ``other``'s front: ``other``
+        (its own planner, which senses bodies) waits for ``car`` to move, so ``car`` must
+        not wait for ``other`` in the crossing order. Found in ``four-way-flows``, paper,
+        seed 3, all send rules ``change``: a committed ``C_FAST`` car held short of a car
+        standing in the box kept that car waiting for it, forever."""
+        if not paths.ends_at_rest(points):
+            return False
+        rest = float(points[-1, 0]), float(points[-1, 1])
+        heading = paths.heading_of(points, points.shape[0] - 1)
+        h = other.heading if heading is None else heading
+        # the body at rest and the reach ahead of its front, as one rectangle
+        ahead = 0.5 * HELD_REACH_M
+        probe = footprints(
+            rest[0] + ahead * math.cos(h),
+            rest[1] + ahead * math.sin(h),
+            h,
+            other.length + HELD_REACH_M,
+            other.width,
+        )
+        body = footprints(car.x, car.y, car.heading, car.length, car.width)
+        return any_rects_overlap(probe, body)
 
     def _zone_taken(self, car: _Car, points: FloatArray, now: float) -> bool:
         """Left to its own path ``points``, ``car`` (``AUTO``, or ``C_SLOW`` about to be

@@ -76,9 +76,12 @@ A (re)started RSU, and committed cars (ours, issue 16; the paper is silent):
   plan it would get keeps ``headway_s`` between its body's zone occupancy and
   that of every committed or ``C_FAST`` car; else the promotion is a
   ``CONFLICT`` (it waits its turn in ``C_SLOW``; ``order_kept`` in the core's
-  counters). The occupancy check is needed besides the table's point pairs: a
-  slow car's body is in the zone far longer than its reference point is within
-  ``D_margin`` of the crossing.
+  counters). A committed car whose path ends at rest with this car's body
+  just ahead of it (``HELD_REACH_M``) is not waited for: it waits for this
+  car (its own planner senses the body), so waiting for it locks the box. The
+  occupancy check is needed besides the table's point pairs: a slow car's body
+  is in the zone far longer than its reference point is within ``D_margin`` of
+  the crossing.
 """
 
 from __future__ import annotations

@@ -4,6 +4,7 @@ configuration and receiver expiry, and the paper run with it on."""
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -221,3 +222,18 @@ def test_paper_run_with_the_change_rule(paper: Scenario) -> None:
     # cp_rule: the RSU's coordinated paths (on the cmd stream) only on change, 0.5 s refresh
     assert every_sent[Stream.CMD][1] < 0.6 * both_sent[Stream.CMD][1]  # measured: 0.42
     assert kbps(every_sent) < kbps(both_sent) - 1.5  # measured: about 9.0, from 11.6
+
+
+@pytest.mark.slow
+def test_four_way_flows_with_every_change_rule_leaves_no_car_behind() -> None:
+    """``four-way-flows`` (200 veh/h per approach, 32 cars), seed 3, every rule ``change``:
+    15 of the 32 cars stood in a box lock to the end before ``RsuCore._held_by`` (issue
+    12 cause 8); now every car finishes and none collides (the README's bandwidth table
+    has its kbps: 16.5 per car, 35 at 10 Hz). About 40 s: ``slow``."""
+    flows = Path(__file__).resolve().parents[2] / "scenarios" / "four-way-flows.toml"
+    sc = parse_scenario(flows.read_text() + ALL, "four-way-flows+change")
+    result = Simulation(sc, SimOptions(mode=RunMode.RSU, policy=Policy.PAPER, seed=3)).run()
+    summary = result.summary
+    assert summary is not None and summary.vehicles_inserted == 32
+    assert result.collisions == 0 and result.all_finished
+    assert summary.vehicles_finished == 32

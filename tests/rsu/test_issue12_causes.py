@@ -34,7 +34,7 @@ from services.vehicle.profile import SpeedProfile, forward_pass, grid, pass_time
 
 ZONE = np.array([[-3.5, -3.5], [3.5, -3.5], [3.5, 3.5], [-3.5, 3.5]])
 VMAX = 50 / 3.6
-EAST, NORTH = 0.0, math.pi / 2
+EAST, NORTH, WEST = 0.0, math.pi / 2, math.pi
 CROSS = (1.75, -1.75)
 
 
@@ -339,11 +339,12 @@ def test_cause7_no_slot_through_a_body_standing_in_the_zone() -> None:
 
 def test_cause7_a_car_in_the_zone_is_not_released_into_a_body_across_its_lane() -> None:
     """B (C_SLOW) crawls in the box; A (AUTO, not told to stop) stands in the box 3.55 m
-    from B's lane, its front 0.4 m from B's side. The point rule sees no conflict, even
-    with the release margins; the bodies' sweeps meet: B stays C_SLOW until A has gone."""
+    from B's lane, heading away from it, its rear 0.4 m from B's side. The point rule sees
+    no conflict, even with the release margins; the bodies' sweeps meet: B stays C_SLOW
+    until A has gone. (A facing B would be standing for B: cause 8.)"""
     cfg = config()
     core = RsuCore(cfg, listen_s=0.0)
-    core.on_message(0.0, message(FuturePath, "A", held(-1.8, -1.75, 0.0), 0.0, EAST))
+    core.on_message(0.0, message(FuturePath, "A", held(-1.8, 1.75, 0.0), 0.0, WEST))
     assert core.mode_of("A") == Mode.AUTO
     b = straight((1.75, -3.0), NORTH, 0.5, 0.0)
     assert core.table.naive_conflicts("B", b, 0.0, cfg.t_free_s, (), 0.6, 0.2) == []
@@ -351,9 +352,9 @@ def test_cause7_a_car_in_the_zone_is_not_released_into_a_body_across_its_lane() 
     core.on_message(0.0, message(AutonomousPath, "B", b, 0.5, NORTH, Mode.C_SLOW), "rsu-1")
     assert core.mode_of("B") == Mode.C_SLOW
     assert core.counters["zone_taken"] == 1
-    # A drives off east, through the box and out: B is released once A's body is past
-    a2 = straight((12.0, -1.75), EAST, 3.0, 4.0)
-    core.on_message(4.0, message(FuturePath, "A", a2, 3.0, EAST, seq=2))
+    # A drives off west, out of the box: B is released once A's body is past
+    a2 = straight((-12.0, 1.75), WEST, 3.0, 4.0)
+    core.on_message(4.0, message(FuturePath, "A", a2, 3.0, WEST, seq=2))
     b2 = straight((1.75, -2.9), NORTH, 0.5, 4.0)
     core.on_message(4.0, message(AutonomousPath, "B", b2, 0.5, NORTH, Mode.C_SLOW, 2), "rsu-1")
     assert core.mode_of("B") == Mode.AUTO
@@ -372,3 +373,40 @@ def test_cause7_opposing_traffic_is_not_held_by_a_body_in_the_zone() -> None:
     core.on_message(0.0, message(AutonomousPath, "B", b, 0.5, NORTH, Mode.C_SLOW), "rsu-1")
     assert core.mode_of("B") == Mode.AUTO
     assert core.counters["zone_taken"] == 0
+
+
+# Found in four-way-flows (paper, seed 3, every send rule ``change``): W (westbound, front in
+# the box) was demoted to C_SLOW; S (northbound, C_FAST, committed) stood short of W's body,
+# its own planner holding it there. W waited for S in the crossing order, S for W's body:
+# 15 of 32 cars never got through.
+
+
+def _box_lock(w_x: float) -> RsuCore:
+    """S stands committed in the box (centre 0.3 m in, front 2.55 m) with its path at rest;
+    W, C_SLOW, stands at ``w_x`` on the westbound lane and sends a path west through the
+    box at 3 m/s (5 m from S's centre where it crosses S's lane: no point conflict)."""
+    core = RsuCore(config(), listen_s=0.0)
+    core._cars["S"] = rsu_core._Car("S", mode=Mode.C_FAST, x=1.75, y=-3.2, heading=NORTH)
+    core.table.update("S", held(1.75, -3.2, 0.0), 0.0)
+    w = straight((w_x, 1.75), WEST, 3.0, 0.0)
+    core._cars["W"] = rsu_core._Car("W", mode=Mode.C_SLOW, x=w_x, y=1.75, heading=WEST)
+    core.on_message(0.0, message(AutonomousPath, "W", w, 3.0, WEST, Mode.C_SLOW), "rsu-1")
+    return core
+
+
+def test_cause8_a_car_held_by_this_cars_body_is_not_waited_for() -> None:
+    """W's body (front 1.15 m into the box) stands 1.8 m ahead of S's front, across S's
+    lane: S waits for W, so W goes first (``RsuCore._held_by``)."""
+    core = _box_lock(4.6)
+    assert core._held_by(core._cars["S"], core.table.get("S").points, core._cars["W"])  # type: ignore[union-attr]
+    assert core.mode_of("W") == Mode.C_FAST
+    assert core.counters["order_kept"] == 0
+
+
+def test_cause8_a_car_held_by_another_body_keeps_its_order() -> None:
+    """The same S, W 12 m further east, not in S's way: S stands in the box for something
+    else, and W waits its turn behind S's body."""
+    core = _box_lock(16.6)
+    assert not core._held_by(core._cars["S"], core.table.get("S").points, core._cars["W"])  # type: ignore[union-attr]
+    assert core.mode_of("W") == Mode.C_SLOW
+    assert core.counters["order_kept"] >= 1
