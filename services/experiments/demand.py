@@ -26,8 +26,10 @@ trace, SUMO runs with their per-car delays), ``runs.csv`` (one row per run),
 Decisions where the issue is silent: the default run (meant to take under 15 min on 2
 idle cores; crosspath's cost grows with the cars in the world at once, so 800 veh/h,
 where every control saturates, is left to ``--full``) is 200/400/600 veh/h (the demands
-of the issue's SUMO reference), straight only, 2 seeds, 60 s of demand and 60 s to
-clear; ``--full`` is the issue's grid (200..800 veh/h, both mixes, 5 seeds, 600 s,
+of the issue's SUMO reference), straight only, 2 seeds, 60 s of demand and 120 s to
+clear (a run ends as soon as every car has finished: at 600 veh/h the RSU modes' last cars
+finish at 126-139 s, so a 60 s clearance cut cars that were still driving and left them
+out of the mean delay); ``--full`` is the issue's grid (200..800 veh/h, both mixes, 5 seeds, 600 s,
 300 s clearance); ``--quick`` is one seed, 400 veh/h, straight, 30 s (the test).
 Mean delay is over finished cars only (as ``RunSummary.mean_delay_s``); the table
 always shows finished out of arrived beside it, so a run that strands cars cannot
@@ -130,7 +132,7 @@ class DemandConfig:
     seeds: int = 2
     base_seed: int = 0
     horizon_s: float = 60.0
-    clearance_s: float = 60.0
+    clearance_s: float = 120.0
     columns: tuple[str, ...] = tuple(c.key for c in COLUMNS)
     controls: tuple[str, ...] = tuple(c.value for c in JUNCTION_TYPES)
     jobs: int | None = None
