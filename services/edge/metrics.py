@@ -155,8 +155,6 @@ _RSU_ACTIONS: Final = {
     "coordinated_paths": "coordinated_path",
     "given_way": "given_way",
     "order_kept": "order_kept",
-    "slot_claims": "slot_claim",
-    "claim_yields": "claim_yield",
     "expired": "expired",
 }
 """RSU core counters exported as ``crosspath_rsu_actions_total{action}``."""

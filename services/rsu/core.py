@@ -63,15 +63,6 @@ policies, cars following their coordinated paths exactly) and cause by cause in
    in it: a path that ends at rest with the body in the zone gets the paper's stop
    instead (``VelocityManager.rests_in_zone``, ``tests/rsu/test_box.py``).
 
-First come, first served (``slot``, issue 12): a ``C_SLOW`` car that finds no slot in
-the table claims the earliest one that only later arrivals (cars the RSU first heard in
-coverage after it) stand in, if they can still stop comfortably and are not ahead of it
-in its lane (:meth:`RsuCore._claim`); in the same step those of them its new path meets
-are re-planned around it (they yield, as to any ``C_SLOW`` path), and so are the
-followers their new paths meet. Tested as a hypothesis property in
-``tests/rsu/test_fcfs_claim.py``: after the step no two paths in the table conflict,
-and only later arrivals that could stop, or their followers, changed mode.
-
 Status: the property holds for ``slot``; for ``paper`` it still fails where a turning
 car merges into a lane a straight car also uses (``KNOWN_FAILURE`` in the test).
 
@@ -103,7 +94,6 @@ from __future__ import annotations
 import collections
 import logging
 import math
-from collections.abc import Collection
 from dataclasses import dataclass
 
 import numpy as np
@@ -209,7 +199,6 @@ class _Car:
     changed_at: float = -math.inf  # when the last one was [s]
     held_short: bool = False  # its last coordinated path stops it short of the zone
     sent: ChangeRule | None = None  # under cp_rule: the last coordinated path sent it
-    arrived: float = math.inf  # when the RSU first heard it in coverage [s]: its FCFS rank
 
     def observe(self, path: VehiclePath) -> None:
         if path.header.time_us >= self.state_us:
@@ -431,7 +420,7 @@ class RsuCore:
             self.counters["out_of_coverage"] += 1
             return []
         if car is None:
-            car = _Car(vehicle, last_fp_us=fp.header.time_us, arrived=now)
+            car = _Car(vehicle, last_fp_us=fp.header.time_us)
             self._cars[vehicle] = car
             self.counters["vehicles_seen"] += 1
         car.observe(fp)
@@ -461,7 +450,9 @@ class RsuCore:
                 self.counters["reinitiations"] += 1
                 car.sent = None  # a re-initiation always comes with its coordinated path
                 out = [self._command(now, car, Command.INITIATE, car.mode)]
-                out.extend(self._coordinate(now, car, fp, None))
+                sent = self._coordinate(now, car, fp, None)
+                if sent is not None:
+                    out.append(sent)
                 return out
             return []
         car.autonomous = fp
@@ -622,7 +613,6 @@ class RsuCore:
         moving_only: bool = False,
         horizon_s: float = math.inf,
         crossing_only: bool = False,
-        exclude: Collection[str] = (),
     ) -> str | None:
         """The first committed car (in ``C_FAST`` or :meth:`_committed`) whose zone occupancy
         ``points`` would come within ``headway_s`` of, or None.
@@ -633,8 +623,7 @@ class RsuCore:
         committed cars that are not told to stop (``C_SLOW``); ``horizon_s``: only
         occupancies that overlap within this of ``now`` [s]; ``crossing_only``: only cars
         whose bodies cross or merge with this one's in the zone (:meth:`_bodies_meet`:
-        opposing traffic and followers pass), else any body in the zone; ``exclude``: cars
-        not counted (the later arrivals a slot claim makes yield, :meth:`_claim`).
+        opposing traffic and followers pass), else any body in the zone.
         """
         mine = self._occupancy(points, car.length)
         if mine is None:
@@ -644,7 +633,7 @@ class RsuCore:
         for vehicle in self.table:
             other = self._cars.get(vehicle)
             entry = self.table.get(vehicle)
-            if vehicle == car.vehicle or other is None or entry is None or vehicle in exclude:
+            if vehicle == car.vehicle or other is None or entry is None:
                 continue
             theirs = self._entry_occupancy(vehicle, entry.points, other.length)
             if theirs is None or theirs[1] < now or (moving_only and other.mode == Mode.C_SLOW):
@@ -865,13 +854,17 @@ class RsuCore:
             out.append(self._command(now, car, Command.INITIATE, mode))
             self.counters["initiations"] += 1
             car.sent = None  # a new initiation always comes with its coordinated path
-            out.extend(self._coordinate(now, car, path, plan if mode == Mode.C_FAST else None))
+            sent = self._coordinate(now, car, path, plan if mode == Mode.C_FAST else None)
+            if sent is not None:
+                out.append(sent)
         elif action == Action.FORGET:
             self.forget(vehicle)
         elif mode == Mode.AUTO:
             self._reserve(now, car, path.points)
         elif isinstance(path, AutonomousPath):
-            out.extend(self._coordinate(now, car, path, plan))
+            sent = self._coordinate(now, car, path, plan)
+            if sent is not None:
+                out.append(sent)
         else:
             self.table.touch(vehicle, now)
         return out
@@ -890,7 +883,12 @@ class RsuCore:
         """A ``C_FAST`` car has priority: every car its path conflicts with (within
         ``T_free``) must yield, unless ``_yields`` says the C_FAST car is the one to."""
         if near is None:
-            near = self._entry_conflicts(now, car)
+            entry = self.table.get(car.vehicle)
+            if entry is None:
+                return []
+            near = self.table.conflicts(
+                car.vehicle, entry.points, now, self.config.t_free_s, shape=car.shape
+            )
         out: list[Outgoing] = []
         for conflict in near:
             other = self._cars.get(conflict.vehicle)
@@ -931,142 +929,27 @@ class RsuCore:
     def _reserve(self, now: float, car: _Car, points: FloatArray) -> None:
         self.table.update(car.vehicle, points, now, (car.length, car.width))
 
-    def _slow_plan(
-        self, now: float, car: _Car, path: VehiclePath, exclude: Collection[str] = ()
-    ) -> SpeedPlan:
-        """The ``C_SLOW`` plan of ``car``, clear of the table but for ``exclude``."""
-        firm = car.held_short and car.mode == Mode.C_SLOW
-        # a car committed itself waits only for moving bodies (as in _zone_taken): two
-        # committed cars told to stop must not each wait for the other's hold
-        moving_only = self._committed(car, path.points)
-
-        def in_order(points: FloatArray) -> bool:
-            # a slot enters the zone: it keeps the crossing order as a C_FAST plan does
-            clash = self._order_clash(
-                car, points, now, moving_only=moving_only, crossing_only=True, exclude=exclude
-            )
-            return clash is None
-
-        return self.velocity.plan(
-            car.vehicle, path, car.mode, now, self.table, exclude, firm=firm, admissible=in_order
-        )
-
-    def _claim(
-        self, now: float, car: _Car, path: VehiclePath
-    ) -> tuple[SpeedPlan, list[_Car]] | None:
-        """First come, first served (``slot``): a ``C_SLOW`` car that finds no slot in the
-        table takes the earliest one that only cars which arrived after it (in coverage
-        later, ``_Car.arrived``) stand in, if they can still stop comfortably before the
-        zone and are not ahead of it in its lane; the plan and those of them its plan
-        conflicts with, who then yield (:meth:`_coordinate`). None when even that finds
-        no slot. Without it a car standing at the stop line waited while a stream on
-        the crossing road, each car spaced a little closer than the gap a car starting
-        from rest needs, was promoted car after car (``four-way-flows``, 600 veh/h)."""
-        rank = (car.arrived, car.vehicle)
-        later: set[str] = set()
-        for vehicle in self.table:
-            other = self._cars.get(vehicle)
-            if (
-                other is None
-                or vehicle == car.vehicle
-                or (other.arrived, vehicle) <= rank
-                or self._committed(other)
-                or self._ahead_in_lane(other, car, path.points)
-            ):
-                continue
-            later.add(vehicle)
-        if not later:
-            return None
-        plan = self._slow_plan(now, car, path, later)
-        if plan.kind not in ("slot", "slot_stop"):
-            return None
-        found = self.table.conflicts(
-            car.vehicle, plan.points, now, self.config.t_free_s, (), *self._margins,
-            shape=car.shape,
-        )  # fmt: skip
-        names = {c.vehicle for c in found}
-        moving_only = self._committed(car, path.points)
-        skip: set[str] = set()
-        while True:  # every car whose body the plan's would come within a headway of
-            clash = self._order_clash(
-                car, plan.points, now, moving_only=moving_only, crossing_only=True, exclude=skip
-            )
-            if clash is None:
-                break
-            names.add(clash)
-            skip.add(clash)
-        if not names <= later:
-            return None  # conflicts the plain search did not ignore: keep the fallback
-        return plan, [self._cars[v] for v in sorted(names)]
-
     def _coordinate(
         self, now: float, car: _Car, path: VehiclePath, plan: SpeedPlan | None
-    ) -> list[Outgoing]:
-        """Compute (unless given), reserve and send the car's coordinated path; nothing
-        when the send rule keeps the last one sent (``cp_change_m``: :meth:`_unchanged`).
-        Under ``slot`` a car with no slot may claim one (:meth:`_claim`): the cars that
-        stand in it are then re-planned around it in the same step."""
-        yielders: list[_Car] = []
+    ) -> Outgoing | None:
+        """Compute (unless given), reserve and send the car's coordinated path; None when
+        the send rule keeps the last one sent (``cp_change_m``: :meth:`_unchanged`)."""
         if plan is None:
-            plan = self._slow_plan(now, car, path) if car.mode == Mode.C_SLOW else None
-            if plan is None:
-                plan = self.velocity.plan(car.vehicle, path, car.mode, now, self.table)
-            elif plan.kind == "slot_fallback":
-                claimed = self._claim(now, car, path)
-                if claimed is not None:
-                    plan, yielders = claimed
-                    self.counters["slot_claims"] += 1
-        out = self._send_plan(now, car, plan)
-        # the cars the claim moves, then each one's followers its new path now meets (a
-        # follower yields to the car ahead), each re-planned once
-        queue, moved = collections.deque(yielders), {car.vehicle}
-        while queue:
-            other = queue.popleft()
-            if (
-                other.vehicle in moved
-                or other.autonomous is None
-                or other.vehicle not in self._cars
-            ):
-                continue
-            moved.add(other.vehicle)
-            self.counters["claim_yields"] += 1
-            if self._leaving(other):
-                out.extend(self._apply(now, other, RsuEvent.LEAVING, other.autonomous, None))
-            elif other.mode == Mode.C_SLOW:
-                # re-planned on whichever path it sent last (a future path until its first
-                # autonomous one, which ``_apply`` would only touch)
-                out.extend(self._coordinate(now, other, other.autonomous, None))
-            else:
-                out.extend(self._apply(now, other, RsuEvent.CONFLICT, other.autonomous, None))
-            queue.extend(self._followers_met(now, other))
-        return out
+            firm = car.held_short and car.mode == Mode.C_SLOW
+            # a car committed itself waits only for moving bodies (as in _zone_taken): two
+            # committed cars told to stop must not each wait for the other's hold
+            moving_only = self._committed(car, path.points)
 
-    def _entry_conflicts(self, now: float, car: _Car) -> list[Conflict]:
-        """The conflicts of ``car``'s table entry within ``T_free`` (none without one)."""
-        entry = self.table.get(car.vehicle)
-        if entry is None:
-            return []
-        return self.table.conflicts(
-            car.vehicle, entry.points, now, self.config.t_free_s, shape=car.shape
-        )
+            def in_order(points: FloatArray) -> bool:
+                # a slot enters the zone: it keeps the crossing order as a C_FAST plan does
+                clash = self._order_clash(
+                    car, points, now, moving_only=moving_only, crossing_only=True
+                )
+                return clash is None
 
-    def _followers_met(self, now: float, lead: _Car) -> list[_Car]:
-        """The cars behind ``lead`` in their lane whose paths its table entry conflicts
-        with within ``T_free``."""
-        out: list[_Car] = []
-        for conflict in self._entry_conflicts(now, lead):
-            other = self._cars.get(conflict.vehicle)
-            theirs = self.table.get(conflict.vehicle)
-            if (
-                other is not None
-                and theirs is not None
-                and self._ahead_in_lane(lead, other, theirs.points)
-            ):
-                out.append(other)
-        return out
-
-    def _send_plan(self, now: float, car: _Car, plan: SpeedPlan) -> list[Outgoing]:
-        """Reserve and send ``plan`` as the car's coordinated path (:meth:`_coordinate`)."""
+            plan = self.velocity.plan(
+                car.vehicle, path, car.mode, now, self.table, firm=firm, admissible=in_order
+            )
         points, speeds = plan.points, plan.speeds
         cap = self.config.max_points
         if cap is not None and points.shape[0] > cap:
@@ -1078,10 +961,10 @@ class RsuCore:
             points = np.array(points, dtype=np.float64)
             points.flags.writeable = False  # shared by the table and the rule (identity)
             if self._unchanged(now, car, points):
-                return []
+                return None
         car.held_short = plan.short
         self._reserve(now, car, points)
         self.counters["coordinated_paths"] += 1
         self.counters[f"plan_{plan.kind}"] += 1
         message = CoordinatedPath(self._header(now), car.vehicle, car.mode, points, speeds)
-        return [Outgoing(car.vehicle, message)]
+        return Outgoing(car.vehicle, message)

@@ -46,10 +46,6 @@ Which path is judged, and who yields (our reading of the paper, where it is sile
   yields to the car ahead in its lane; a ``C_SLOW`` car is released (``NO_CONFLICT``
   -> ``AUTO``) only when its path is clear over ``T_free`` by the margins; after two
   mode changes, promotions and releases wait a dwell (bounded changes per crossing).
-* First come, first served (ours, ``slot``): a ``C_SLOW`` car with no slot in the
-  table may claim one from cars that came into coverage after it and can still stop
-  comfortably; those the claim meets get ``CONFLICT`` in the same step
-  (``RsuCore._claim``): a standing car is no longer starved by a crossing stream.
 * Hysteresis (ours): conflicts are judged on sampled points, so a pair at the
   edge of ``D_margin`` / headway can appear and vanish as a path is re-sent
   with its points 0.1 s further on. To keep that from flipping modes 10 times

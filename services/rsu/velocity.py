@@ -30,12 +30,10 @@ Two policies (``Policy``):
     meets it: brake to a constant speed ``v_c`` (found by bisection) so as to
     reach the zone entry no earlier than ``t*``, then accelerate towards
     ``V_max``. If even ``slot_min_speed_mps`` is too fast, the car stops
-    ``stop_gap_m`` (front bumper) before the zone (or, standing a little past
-    that point already, where it stands) and waits until it must start again
-    to enter at ``t*``. If no such path exists (the car cannot stop
+    ``stop_gap_m`` (front bumper) before the zone and waits until it must
+    start again to enter at ``t*``. If no such path exists (the car cannot stop
     before the zone any more, or no gap within ``T_free``) it falls back to the
-    ``paper`` stop, unless the RSU finds it a slot first come, first served
-    (``RsuCore._claim``). A path that never reaches the zone, or a car already in
+    ``paper`` stop. A path that never reaches the zone, or a car already in
     it, also gets the ``paper`` stop. So does a path that ends at rest with the
     car's body in the zone (its own planner stops it there, behind a car still
     crossing, say): a retiming keeps the positions, so every slot of it would leave
@@ -100,10 +98,6 @@ times the comfortable deceleration (5 m/s² by default, the emergency limit): re
 every 0.1 s from a speed a little above its plan's (actuator lag, rounding), a stop at
 exactly the hard limit would otherwise slide into the zone (found by the invariant's
 property test)."""
-_STANDING_MPS = 0.05
-"""A car this slow [m/s] waits for its slot where it stands when it is already at (or
-a little past) the stop point ``stop_gap_m`` before the zone (``_stop_and_go``): such a
-car had no slot at all, only the paper's stop."""
 _STOP_SLACK_M = 0.5  # a stop behind a car ahead keeps this more than the follow distance
 _VC_GRID = 24
 _VC_ROUNDS = 3
@@ -727,8 +721,6 @@ class VelocityManager:
         a, b = tr.accel, tr.decel
         s = tr.s
         k = int(np.searchsorted(s, s[entry] - (tr.length / 2.0 + cfg.stop_gap_m), side="right")) - 1
-        if k < 0 and tr.v0 <= _STANDING_MPS and s[entry] > tr.length / 2.0:
-            k = 0  # it stands a little past its stop point, front out of the zone: waits there
         if k < 0 or tr.v0 * tr.v0 > 2.0 * b * s[k] + 1e-6:
             return None
         idx = np.arange(s.shape[0])
