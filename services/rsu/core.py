@@ -63,6 +63,17 @@ policies, cars following their coordinated paths exactly) and cause by cause in
    in it: a path that ends at rest with the body in the zone gets the paper's stop
    instead (``VelocityManager.rests_in_zone``, ``tests/rsu/test_box.py``).
 
+Tried and dropped (3 Dec, c821a6a): first come, first served claims under ``slot``. A
+``C_SLOW`` car with no slot took the earliest one that only later arrivals (first heard
+after it, able to stop comfortably) stood in, and those were re-planned around it in
+the same step. On the demand experiment's straight flows it helped (400 veh/h, seeds
+0-4: 10.7 -> 9.2 s mean delay; 600 veh/h seed 4 finished every car instead of 18 of
+35 by 180 s), but with turns it hurt: ``four-way-flows`` seed 0 13.4 -> 16.8 s,
+``four-way-flows-40`` seed 0 13.1 -> 16.5 s with the min gap down from 0.21 to 0.07 m
+(claiming only over cars not yet ``C_FAST``: 18.5 s). Demoting granted cars for a car
+that starts from rest costs more than the wait it saves once turning bodies occupy
+the zone longer.
+
 Status: the property holds for ``slot``; for ``paper`` it still fails where a turning
 car merges into a lane a straight car also uses (``KNOWN_FAILURE`` in the test).
 
