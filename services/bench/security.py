@@ -12,6 +12,14 @@ Keys this module writes (``results/bench/security.json`` by default):
   ``signed_future_path_with_cert_bytes`` (once a second), ``unsigned_future_path_bytes``;
 - ``signed_worst_case_bytes``: a ``max_points`` future path with 32-byte ids and
   2-byte deltas, signed: at most 1460;
+- ``forged_cert_flood_core_pct``: the share of one core [%] that a flood of forged
+  certificates costs ``TrustStore.verify_datagram`` at :data:`FORGED_FLOOD_HZ`, each
+  datagram with a new certificate that names the deployment's root as its issuer (the
+  costliest forgery: only a whole Ed25519 verification refuses it), measured after
+  the store's burst of checks is spent; ``forged_cert_flood_core_pct_unpaced``: the
+  same store without its pace (``cert_checks_per_s`` infinite), the baseline, and
+  ``forged_cert_flood_ratio`` their ratio (``repeat`` datagrams, simulated arrival
+  times);
 - with ``--flood-duration S`` (> 0): the ``flood_*`` and ``baseline_*`` keys of
   ``services.bench.flood.flood_section`` (another helper's part: real daemons under a
   5000 msgs/s flood).
@@ -23,7 +31,9 @@ Medians on the machine at hand; machine-dependent.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
+import math
 import statistics
 import sys
 import time
@@ -34,11 +44,27 @@ import numpy as np
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
 
 from protocol import FuturePath, Header, Kind, Mode, decode, encode, max_points
-from protocol.auth import Role, issue_certificate, public_bytes, run_tag
+from protocol.auth import (
+    Certificate,
+    Role,
+    decode_certificate,
+    issue_certificate,
+    key_id,
+    public_bytes,
+    run_tag,
+    seal,
+)
 from services.edge.args import non_negative_float, output_file, positive_int
-from services.edge.trust import Credentials, Signer, TrustStore
+from services.edge.trust import (
+    CERT_CHECK_BURST,
+    CERT_CHECKS_PER_S,
+    Credentials,
+    Refused,
+    Signer,
+    TrustStore,
+)
 
-__all__ = ["configure", "measure", "run", "update_json"]
+__all__ = ["FORGED_FLOOD_HZ", "configure", "forged_certificate", "measure", "run", "update_json"]
 
 DEFAULT_OUT = Path("results/bench/security.json")
 POINTS = 120
@@ -80,6 +106,76 @@ def _credentials(subject: str) -> tuple[Credentials, bytes]:
     key = Ed25519PrivateKey.generate()
     cert = issue_certificate(root, subject, Role.VEHICLE, public_bytes(key), 0, 2**32 - 1)
     return Credentials(key, cert, public_bytes(root)), public_bytes(root)
+
+
+FORGED_FLOOD_HZ = 5000.0
+"""Arrival rate of the forged-certificate flood [datagrams per s] (issue 13's flood)."""
+
+
+def forged_certificate(creds: Credentials, root_id: bytes, variant: int) -> Certificate:
+    """``creds``' certificate (issued by another root) made to name the root with key id
+    ``root_id`` as its issuer, with a bogus signature that differs per ``variant``: the
+    forgery a receiver can refuse only by a whole Ed25519 verification, new in every
+    datagram at no cost to the forger (SPEC.md 2.10 layout)."""
+    raw = bytearray(creds.certificate.raw)
+    at = 43 + len(creds.subject)  # the issuer's key id
+    raw[at : at + 8] = root_id
+    raw[-8:] = variant.to_bytes(8, "little")
+    return decode_certificate(bytes(raw))
+
+
+class _SimClock:
+    """Simulated arrival times of the flood [s]."""
+
+    def __init__(self) -> None:
+        self.t = 0.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def _forged_flood_share(count: int, paced: bool) -> float:
+    """Share of one core [%] that ``count`` datagrams, each with a new forgery, arriving
+    at :data:`FORGED_FLOOD_HZ`, cost a trust store (``paced``: the daemons' pace of root
+    checks, its burst spent first; else none)."""
+    _, root = _credentials("car-a")
+    evil, _ = _credentials("car-a")
+    run = run_tag("bench")
+    clock = _SimClock()
+    store = TrustStore(
+        root,
+        run=run,
+        monotonic=clock,
+        cert_checks_per_s=CERT_CHECKS_PER_S if paced else math.inf,
+        cert_check_burst=CERT_CHECK_BURST if paced else math.inf,
+    )
+    warm = int(store.cert_check_burst) if paced else 0
+    batch = []
+    for k in range(warm + count):
+        cert = forged_certificate(evil, key_id(root), k)
+        data = seal(encode(_path("car-a", k + 1, POINTS)), evil.key, run, cert)
+        batch.append((data, decode(data)))
+    for data, message in batch[:warm]:  # spend the burst: the flood's steady state
+        with contextlib.suppress(Refused):
+            store.verify_datagram(data, message)
+    t0 = time.perf_counter()
+    for k, (data, message) in enumerate(batch[warm:]):
+        clock.t = k / FORGED_FLOOD_HZ
+        with contextlib.suppress(Refused):
+            store.verify_datagram(data, message)
+    busy_s = time.perf_counter() - t0
+    return round(100.0 * busy_s / (count / FORGED_FLOOD_HZ), 1)
+
+
+def _forged_flood(count: int) -> dict[str, float]:
+    """The ``forged_cert_flood_*`` keys."""
+    paced = _forged_flood_share(count, paced=True)
+    unpaced = _forged_flood_share(count, paced=False)
+    return {
+        "forged_cert_flood_core_pct": paced,
+        "forged_cert_flood_core_pct_unpaced": unpaced,
+        "forged_cert_flood_ratio": round(unpaced / paced, 2),
+    }
 
 
 def _us(samples: list[float], q: float) -> float:
@@ -131,6 +227,7 @@ def measure(repeat: int = 2000) -> dict[str, Any]:
         "signed_future_path_with_cert_bytes": len(first),
         "signed_worst_case_bytes": len(worst_signed),
         "signed_worst_case_points": max_points(Kind.FUTURE_PATH),
+        **_forged_flood(repeat),
         "points": POINTS,
         "repeat": repeat,
     }
@@ -168,7 +265,9 @@ def run(args: argparse.Namespace) -> int:
         f"120-point future path {keys['unsigned_future_path_bytes']} B unsigned, "
         f"{keys['signed_future_path_bytes']} B signed, "
         f"{keys['signed_future_path_with_cert_bytes']} B with certificate; "
-        f"worst case signed {keys['signed_worst_case_bytes']} B"
+        f"worst case signed {keys['signed_worst_case_bytes']} B; a flood of forged "
+        f"certificates takes {keys['forged_cert_flood_core_pct']} % of a core "
+        f"({keys['forged_cert_flood_core_pct_unpaced']} % unpaced)"
     )
     print(f"written to {args.json}")
     return 0

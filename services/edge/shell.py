@@ -470,12 +470,11 @@ class DaemonShell:
         self.run_id = run_id
         self.late_ticks = 0
         self.max_tick_lag_s = 0.0
+        self.clock = RunClock(epoch_unix, speed, time_fn=self.time_fn)
         for label, policy in self.receive.items():
             policy.stats.reset()
             if label in _V2X_LABELS:
-                policy.rate_hz = V2X_RATE_HZ * speed
-                policy.burst = max(V2X_BURST, V2X_RATE_HZ * speed / 2)
-        self.clock = RunClock(epoch_unix, speed, time_fn=self.time_fn)
+                self._v2x_limits(policy)
         if self.signer is not None and self.trust is not None:
             self.trust.begin_run(run_id)
             self.signer.begin_run(self.trust.run, speed)
@@ -501,6 +500,20 @@ class DaemonShell:
         self.run_id = None
         self.clock = None
         self.stats = NodeStats(self.node)
+        for label, policy in self.receive.items():
+            if label in _V2X_LABELS:
+                self._v2x_limits(policy)
+
+    def _v2x_limits(self, policy: ReceivePolicy) -> ReceivePolicy:
+        """Set a V2X inbox's limits for now: :data:`V2X_RATE_HZ` per lane scaled by the
+        run's speed (as at speed 1 between runs); between runs a verifying daemon uses V2X
+        only to learn its peers' keys (``TrustStore.learn``), so it queues only datagrams
+        that carry a certificate and a flood then costs no decoding."""
+        speed = 1.0 if self.clock is None else self.clock.speed
+        policy.rate_hz = V2X_RATE_HZ * speed
+        policy.burst = max(V2X_BURST, V2X_RATE_HZ * speed / 2)
+        policy.certificates_only = self.trust is not None and self.clock is None
+        return policy
 
     def now(self) -> float | None:
         """Run time now, or None when no run is active."""
@@ -555,7 +568,10 @@ class DaemonShell:
         Datagrams on a key of ``ignore_vehicle`` (this car's own future path, which
         Zenoh also delivers locally) are skipped without counting. Outside a run,
         valid messages are dropped uncounted (there is no clock to date them), but
-        malformed ones are counted. ``handler`` runs under :meth:`guard`.
+        malformed ones are counted; a verifying daemon then queues only datagrams that
+        carry a certificate (the rest ``refused`` in the ``receive`` section), whose keys
+        it learns, and every lane is rate limited as at speed 1. ``handler`` runs under
+        :meth:`guard`.
         """
 
         def on_datagram(key: str, payload: bytes) -> None:
@@ -565,7 +581,8 @@ class DaemonShell:
             )
 
         policy = self.receive.setdefault(
-            str(stream), ReceivePolicy(admit=self._admits, dedupe=V2X_DEDUPE)
+            str(stream),
+            self._v2x_limits(ReceivePolicy(admit=self._admits, dedupe=V2X_DEDUPE)),
         )
         return self.transport.subscribe(keyexpr, on_datagram, policy)
 

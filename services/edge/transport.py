@@ -282,6 +282,12 @@ def _digest_signed(payload: bytes) -> bool:
     )
 
 
+def _carries_certificate(payload: bytes) -> bool:
+    """Whether a datagram is signed with its signer's certificate attached (scheme 1,
+    not the digest form): the only kind a receiver can learn a key from."""
+    return len(payload) > 3 and bool(payload[3] & Flags.AUTH) and not _digest_signed(payload)
+
+
 Admit = Callable[[str], bool]
 """Cheap check of a key on the network thread: False refuses the datagram (counted)."""
 
@@ -302,10 +308,12 @@ class ReceivePolicy:
     states, the least recently used evicted. With ``dedupe`` > 0, a lane remembers its last
     ``dedupe`` datagrams and drops an exact copy of one before it costs a token
     (``duplicate``): a replayer that repeats a sender's genuine (validly signed) datagrams
-    cannot spend that sender's rate and starve it. The loop takes the lanes round robin, at
-    most ``batch`` datagrams or ``budget_s`` wall seconds per turn, then yields so that
-    timers (the control loop's ticks) run on time. Fields may be changed while
-    subscribed (the shell scales the rates with the run's speed).
+    cannot spend that sender's rate and starve it. With ``certificates_only`` only signed
+    datagrams that carry their signer's certificate are queued, the rest ``refused``
+    (between runs a verifying daemon uses nothing else: it learns keys). The loop takes
+    the lanes round robin, at most ``batch`` datagrams or ``budget_s`` wall seconds per
+    turn, then yields so that timers (the control loop's ticks) run on time. Fields may
+    be changed while subscribed (the shell scales the rates with the run's speed).
     """
 
     depth: int = 1
@@ -316,6 +324,7 @@ class ReceivePolicy:
     max_bytes: int = 4 * 1024 * 1024
     max_buckets: int = 4096
     dedupe: int = 0
+    certificates_only: bool = False
     batch: int = 64
     budget_s: float = 0.002
     admit: Admit | None = None
@@ -452,9 +461,13 @@ class Inbox:
         policy = self.policy
         stats = policy.stats
         lane = key
+        certified = _carries_certificate(payload)
+        if policy.certificates_only and not certified:
+            stats.count("refused")
+            return
         if policy.by_kind and len(payload) > 3:
             lane = f"{key}#{payload[2]}"
-            if payload[3] & Flags.AUTH and not _digest_signed(payload):
+            if certified:
                 lane += "c"  # it carries its signer's certificate: never replaced by a digest
         now = self._time()
         with self._lock:

@@ -12,7 +12,11 @@ what needs files and clocks:
   plumbing payloads (:meth:`Signer.seal_blob`), with the certificate attached
   about once a second (:data:`CERT_EVERY_S`), the key id otherwise;
 - :class:`TrustStore`: verifies received datagrams and payloads. It caches the
-  certificates it has seen and checked (bounded, LRU, by key id), keeps a
+  certificates it has seen and checked (bounded, LRU, by key id), remembers the
+  forged ones that named its root (bounded, LRU, refused again without a
+  verification), paces its checks against the root (:data:`CERT_CHECKS_PER_S`:
+  a forgery that names the root costs a whole verification and can change in
+  every datagram at no cost to the forger), keeps a
   replay window per key (highest sequence + a 64-bit bitmap, bounded, LRU),
   reloads the revocation list when its file changes, and counts every refusal
   by reason in :attr:`TrustStore.counters`.
@@ -124,6 +128,19 @@ REPLAY_WINDOW: Final = 64
 
 MAX_KEYS: Final = 1024
 """Keys whose certificate and replay state a :class:`TrustStore` keeps (LRU)."""
+
+CERT_CHECKS_PER_S: Final = 200.0
+"""Certificates a :class:`TrustStore` checks against the root per second [monotonic s],
+beyond :data:`CERT_CHECK_BURST` at once. A certificate is checked once per key (then
+cached), so a deployment needs one check per new peer; a forged certificate that names
+our root as its issuer costs a whole Ed25519 verification (≈ 0.2 ms) and differs in
+every datagram at no cost to the forger, so without this bound a flood of them takes
+every core it reaches. Over budget a certificate is refused ``certificate_budget``
+(not cached: its signer sends it again within a second)."""
+
+CERT_CHECK_BURST: Final = 400.0
+"""Certificate checks a :class:`TrustStore` may do back to back (a run's start, where
+every peer's certificate arrives within a second)."""
 
 REVOCATION_CHECK_S: Final = 1.0
 """How often the revocation file's mtime is looked at [s, monotonic]."""
@@ -464,7 +481,9 @@ class TrustStore:
     """Verifies what a daemon receives; thread-compatible, not thread-safe (one loop).
 
     ``run`` is the run tag expected (set it at the start of every run);
-    ``now_unix`` dates certificate validity; ``monotonic`` paces revocation reloads.
+    ``now_unix`` dates certificate validity; ``monotonic`` paces revocation reloads and
+    the checks of certificates against the root (``cert_checks_per_s`` per second,
+    ``cert_check_burst`` at once; ``math.inf`` for no pace, a benchmark's baseline).
     """
 
     def __init__(
@@ -476,6 +495,8 @@ class TrustStore:
         max_keys: int = MAX_KEYS,
         now_unix: Callable[[], float] = time.time,
         monotonic: Callable[[], float] = time.monotonic,
+        cert_checks_per_s: float = CERT_CHECKS_PER_S,
+        cert_check_burst: float = CERT_CHECK_BURST,
     ) -> None:
         self.root = root
         self.root_id = key_id(root)
@@ -488,6 +509,13 @@ class TrustStore:
         self._certs: OrderedDict[bytes, Certificate] = OrderedDict()
         self._windows: OrderedDict[bytes, _Window] = OrderedDict()
         self._blob_windows: OrderedDict[bytes, _Window] = OrderedDict()
+        if not (cert_checks_per_s > 0 and cert_check_burst >= 1):
+            raise ValueError("certificate checks need a rate > 0 and a burst >= 1")
+        self._bad_certs: OrderedDict[bytes, None] = OrderedDict()
+        self.cert_checks_per_s = cert_checks_per_s
+        self.cert_check_burst = cert_check_burst
+        self._check_tokens = cert_check_burst
+        self._check_stamp = monotonic()
         self._revoked: frozenset[bytes] = frozenset()
         self._rev_mtime: float | None = None
         self._rev_checked = float("-inf")
@@ -538,6 +566,36 @@ class TrustStore:
         self.counters[reason] = self.counters.get(reason, 0) + 1
         return Refused(reason, detail)
 
+    def _check(self, cert: Certificate) -> str | None:
+        """Check a certificate not in the cache against the root: None if the root issued
+        it (then cached), else the refusal reason. Certificates found forged are
+        remembered (bounded, LRU) and refused again without a verification; the
+        verifications themselves are paced (:data:`CERT_CHECKS_PER_S`)."""
+        if cert.issuer != self.root_id:  # another authority's: refused without a verification
+            return "bad_certificate"
+        if cert.raw in self._bad_certs:
+            self._bad_certs.move_to_end(cert.raw)
+            return "bad_certificate"
+        now = self.monotonic()
+        if now > self._check_stamp:
+            self._check_tokens = min(
+                self.cert_check_burst,
+                self._check_tokens + (now - self._check_stamp) * self.cert_checks_per_s,
+            )
+            self._check_stamp = now
+        if self._check_tokens < 1.0:
+            return "certificate_budget"
+        self._check_tokens -= 1.0
+        if not cert.issued_by(self.root):
+            self._bad_certs[cert.raw] = None
+            if len(self._bad_certs) > self.max_keys:
+                self._bad_certs.popitem(last=False)
+            return "bad_certificate"
+        self._certs[cert.key_id] = cert
+        if len(self._certs) > self.max_keys:
+            self._certs.popitem(last=False)
+        return None
+
     def _certificate(self, kid: bytes, cert: Certificate | None) -> Certificate:
         """The checked certificate of key ``kid`` (from the message or the cache)."""
         self.reload_revocations()
@@ -549,12 +607,9 @@ class TrustStore:
             cert = cached
         elif cert is None:
             raise self._refuse("unknown_key", kid.hex())
-        elif not cert.issued_by(self.root):
-            raise self._refuse("bad_certificate", f"{cert.subject}: not issued by our root")
-        else:
-            self._certs[kid] = cert
-            if len(self._certs) > self.max_keys:
-                self._certs.popitem(last=False)
+        elif (failed := self._check(cert)) is not None:
+            why = "not issued by our root" if failed == "bad_certificate" else "checks paced"
+            raise self._refuse(failed, f"{cert.subject}: {why}")
         if not cert.valid_at(self.now_unix()):
             raise self._refuse("expired", cert.subject)
         return cert
@@ -581,10 +636,7 @@ class TrustStore:
         cert = trailer.certificate
         if cert is None or trailer.key_id in self._certs or trailer.key_id in self._revoked:
             return
-        if cert.issued_by(self.root):
-            self._certs[trailer.key_id] = cert
-            if len(self._certs) > self.max_keys:
-                self._certs.popitem(last=False)
+        self._check(cert)
 
     # -- verification
 

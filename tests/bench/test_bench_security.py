@@ -18,6 +18,11 @@ def test_measure_keys_and_sizes() -> None:
     assert keys["signed_future_path_with_cert_bytes"] > keys["signed_future_path_bytes"]
     assert MAX_DATAGRAM - 8 < keys["signed_worst_case_bytes"] <= MAX_DATAGRAM
     assert keys["signed_worst_case_points"] >= 200
+    # the forged-certificate flood is measured paced and unpaced (the verification counts
+    # behind it are asserted in tests/edge/test_trust.py, not these wall-clock shares)
+    assert keys["forged_cert_flood_core_pct"] > 0
+    assert keys["forged_cert_flood_core_pct_unpaced"] > 0
+    assert keys["forged_cert_flood_ratio"] > 0
 
 
 def test_cli_merges_into_existing_file(tmp_path: Path) -> None:

@@ -82,6 +82,29 @@ async def test_a_datagram_with_a_certificate_is_not_replaced_by_a_digest_signed_
     assert got == [with_cert, digests[1]]
 
 
+async def test_certificates_only_queues_nothing_else() -> None:
+    """Between runs a verifying daemon only learns keys: unsigned and digest-signed
+    datagrams are refused before they are queued (no decoding), counted ``refused``."""
+    got: list[bytes] = []
+    policy = ReceivePolicy(certificates_only=True)
+    inbox = Inbox(asyncio.get_running_loop(), lambda k, p: got.append(p), policy)
+    with tempfile.TemporaryDirectory() as tmp:
+        authority = Authority.init(Path(tmp))
+        cert = authority.issue_vehicle("A")
+        key = authority.credentials("A").key
+    with_cert = seal(encode(_fake_path("A", 1)), key, 0, cert)
+    others = [encode(_fake_path("A", 2)), seal(encode(_fake_path("A", 3)), key, 0), b"", b"\xcb"]
+    for data in (*others, with_cert):
+        inbox.put("cp/v2x/fp/A", data)
+        await settle()
+    assert got == [with_cert]
+    assert (policy.stats.counts["refused"], policy.stats.counts["offered"]) == (len(others), 1)
+    policy.certificates_only = False  # a run started
+    inbox.put("cp/v2x/fp/A", others[0])
+    await settle()
+    assert got == [with_cert, others[0]]
+
+
 async def test_a_plumbing_lane_keeps_order_up_to_its_depth() -> None:
     got: list[bytes] = []
     policy = ReceivePolicy(depth=4, by_kind=False)

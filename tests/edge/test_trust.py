@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -10,8 +12,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from protocol import Command, Header, Message, Mode, ModeCommand, encode
-from protocol.auth import Coverage, Role
+from protocol.auth import Coverage, Role, seal
+from services.bench.security import forged_certificate
 from services.edge.trust import (
+    CERT_CHECK_BURST,
+    CERT_CHECKS_PER_S,
     REPLAY_WINDOW,
     Authority,
     Credentials,
@@ -268,3 +273,139 @@ def test_stores_of_one_root_share_their_checked_certificates(
     other = Authority.init(tmp_path / "other-pki")
     with pytest.raises(ValueError, match="one root"):
         TrustStore(other.root_public).share_certificates(first)
+
+
+# ------------------------------------------------------- forged certificates (issue 13)
+
+
+def forged_datagram(
+    creds: Credentials, root_id: bytes, variant: int, seq: int
+) -> tuple[bytes, Message]:
+    from protocol import decode
+
+    cert = forged_certificate(creds, root_id, variant)
+    data = seal(encode(command_fp(seq, sender=creds.subject)), creds.key, run_tag("run-1"), cert)
+    return data, decode(data)
+
+
+@contextlib.contextmanager
+def root_checks() -> Iterator[list[int]]:
+    """Count the Ed25519 verifications of certificates against a root (``issued_by``);
+    message signatures are checked through ``services.edge.trust``'s own import."""
+    import protocol.auth
+
+    calls = [0]
+    real = protocol.auth.signature_ok
+
+    def counting(public_key: bytes, signature: bytes, data: bytes) -> bool:
+        calls[0] += 1
+        return real(public_key, signature, data)
+
+    protocol.auth.signature_ok = counting
+    try:
+        yield calls
+    finally:
+        protocol.auth.signature_ok = real
+
+
+def test_forged_certificates_are_verified_once_each_and_paced(
+    authority: Authority, tmp_path: Path
+) -> None:
+    mono = Ticker()
+    store = TrustStore(authority.root_public, monotonic=mono)
+    store.begin_run("run-1")
+    evil = Authority.init(tmp_path / "evil")
+    evil.issue_vehicle("car-a")
+    creds = evil.credentials("car-a")
+    genuine = Signer(authority.credentials("car-b"), run=run_tag("run-1"), cert_every_s=0.0)
+    with root_checks() as calls:
+        for seq in range(1, 51):  # one forged certificate, again and again
+            with pytest.raises(Refused, match="bad_certificate"):
+                store.verify_datagram(*forged_datagram(creds, store.root_id, 0, seq))
+        assert calls[0] == 1
+        other = Signer(creds, run=run_tag("run-1"), cert_every_s=0.0)  # another root, named
+        for seq in range(51, 101):
+            with pytest.raises(Refused, match="bad_certificate"):
+                store.verify_datagram(*signed(other, command_fp(seq)))
+        assert calls[0] == 1  # refused by the issuer's key id alone
+        extra = 50
+        budget = int(CERT_CHECK_BURST) - 1
+        for variant in range(1, budget + extra + 1):  # a new forgery in every datagram
+            with pytest.raises(Refused, match=r"bad_certificate|certificate_budget"):
+                store.verify_datagram(
+                    *forged_datagram(creds, store.root_id, variant, 200 + variant)
+                )
+        assert calls[0] == 1 + budget
+        assert store.counters["certificate_budget"] == extra
+        with pytest.raises(Refused, match="certificate_budget"):  # its turn comes later
+            store.verify_datagram(*signed(genuine, command_fp(1, sender="car-b")))
+        mono.t += 1.5 / CERT_CHECKS_PER_S
+        assert (
+            store.verify_datagram(*signed(genuine, command_fp(2, sender="car-b"))).subject
+            == "car-b"
+        )
+        assert len(store._bad_certs) <= store.max_keys
+
+
+_PACE_AUTH = Authority.init(Path(__import__("tempfile").mkdtemp()) / "pki")
+_PACE_EVIL = Authority.init(Path(__import__("tempfile").mkdtemp()) / "evil")
+for _car in ("car-a", "car-b", "car-c"):
+    _PACE_AUTH.issue_vehicle(_car)
+    _PACE_EVIL.issue_vehicle(_car)
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    st.lists(
+        st.one_of(
+            st.tuples(st.just("forged"), st.integers(0, 30), st.integers(0, 2)),
+            st.tuples(st.just("genuine"), st.integers(0, 2), st.integers(0, 2)),
+            st.tuples(st.just("wait"), st.integers(1, 200), st.just(0)),  # ms
+        ),
+        min_size=1,
+        max_size=120,
+    ),
+    st.integers(1, 6),
+    st.integers(1, 8),
+)
+def test_certificate_checks_never_outrun_their_pace(
+    events: list[tuple[str, int, int]], max_keys: int, burst: int
+) -> None:
+    """Whatever mix of forged and genuine certificates arrives: no forged one is ever
+    accepted, a genuine one is refused only for the pace (never as forged), the
+    verifications against the root never exceed the burst plus the rate over the time
+    elapsed, the memory of forgeries stays within ``max_keys``, and once the pace
+    allows a genuine certificate is accepted. (A pace of 20/s and small bursts, so
+    that it binds within a hundred datagrams.)"""
+    cars = ("car-a", "car-b", "car-c")
+    mono = Ticker()
+    rate = 20.0
+    store = TrustStore(
+        _PACE_AUTH.root_public,
+        monotonic=mono,
+        max_keys=max_keys,
+        cert_checks_per_s=rate,
+        cert_check_burst=burst,
+    )
+    store.begin_run("run-1")
+    evil = [_PACE_EVIL.credentials(c) for c in cars]
+    good = [Signer(_PACE_AUTH.credentials(c), run=run_tag("run-1"), cert_every_s=0.0) for c in cars]
+    with root_checks() as calls:
+        for seq, (what, a, b) in enumerate(events, start=1):
+            if what == "wait":
+                mono.t += a / 1000
+            elif what == "forged":
+                with pytest.raises(Refused, match=r"bad_certificate|certificate_budget"):
+                    store.verify_datagram(*forged_datagram(evil[b], store.root_id, a, seq))
+            else:
+                try:
+                    cert = store.verify_datagram(*signed(good[a], command_fp(seq, sender=cars[a])))
+                except Refused as exc:
+                    assert exc.reason == "certificate_budget"
+                else:
+                    assert cert.subject == cars[a]
+            assert calls[0] <= burst + rate * mono.t + 1e-9
+            assert len(store._bad_certs) <= max_keys
+        mono.t += 1.5 / rate
+        last = len(events) + 1
+        assert store.verify_datagram(*signed(good[0], command_fp(last, sender="car-a")))

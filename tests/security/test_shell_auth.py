@@ -36,13 +36,19 @@ def shell_config(keys: Path, node: str) -> VehicleDaemonConfig:
     return load_config(VehicleDaemonConfig, None, fields, env={})
 
 
-async def test_shell_signs_verifies_and_counts(tmp_path: Path) -> None:
+async def car_b_shell(tmp_path: Path) -> tuple[Authority, MemoryBus, DaemonShell]:
+    """An authority for cars A and B, and car B's shell with its credentials, open."""
     keys = tmp_path / "keys"
     auth = Authority.init(keys)
     auth.provision(["A", "B"], [], [])
     bus = MemoryBus()
     shell = DaemonShell(shell_config(keys, "B"), "test", MemoryTransport(bus))
     await shell.open()
+    return auth, bus, shell
+
+
+async def test_shell_signs_verifies_and_counts(tmp_path: Path) -> None:
+    auth, bus, shell = await car_b_shell(tmp_path)
     got: list[tuple[str, Role | None]] = []
 
     def handler(parsed: ParsedKey, message: Message, now: float) -> None:
@@ -92,6 +98,47 @@ async def test_shell_signs_verifies_and_counts(tmp_path: Path) -> None:
     assert message.header.sender == "B" and trailer.run == run_tag("run-1")
     assert trailer.certificate is not None and trailer.certificate.subject == "B"
     assert decode(sent[-1]).header.seq == 9
+    await shell.close()
+    peer.close()
+
+
+async def test_between_runs_only_certificates_are_queued_and_learned(tmp_path: Path) -> None:
+    """Before a run a verifying shell queues only datagrams that carry a certificate
+    (the rest refused on the network thread: a flood then costs no decoding), rate
+    limited per lane as at speed 1, and learns the certificates' keys, so a
+    digest-signed datagram verifies as soon as the run starts."""
+    auth, bus, shell = await car_b_shell(tmp_path)
+    got: list[str] = []
+    shell.subscribe_v2x(
+        keyexpr.all_future_paths(),
+        Stream.FP,
+        lambda parsed, message, now: got.append(message.header.sender),
+        ignore_vehicle="B",
+    )
+    peer = MemoryTransport(bus)
+    peer.open()
+    a = Signer(auth.credentials("A"))
+    a.begin_run(run_tag("run-1"))
+    unsigned = [encode(future_path("A", 1.0, seq=s)) for s in range(1, 41)]
+    with_cert = [a.seal(encode(future_path("A", 1.0, seq=s))) for s in range(41, 141)]
+    for payload in (*unsigned, *with_cert):
+        peer.publish(keyexpr.future_path("A"), payload, V2X_QOS)
+    await asyncio.sleep(0.05)
+    receive = shell.stats_report(final=False).snapshot["receive"]["fp"]
+    assert receive["refused"] == len(unsigned)
+    assert receive["rate_limited"] >= len(with_cert) - 40  # a burst of 25, then 50/s
+    assert got == []  # nothing is handled outside a run
+    clock = shell.begin_run("run-1", time.time() - 10.0, 1.0)
+    a._burst_until, a._cert_due = float("-inf"), float("inf")  # the key id only from now
+    digest = a.seal(encode(future_path("A", clock.now() - 0.01, seq=500)))
+    assert decode_signed(digest)[1].certificate is None
+    fresh = encode(future_path("A", clock.now() - 0.01, seq=501))
+    for payload in (digest, fresh):  # in a run an unsigned one is decoded and refused
+        peer.publish(keyexpr.future_path("A"), payload, V2X_QOS)
+        await asyncio.sleep(0.05)
+    assert got == ["A"]
+    auth_counts = shell.stats_report(final=False).snapshot["auth"]
+    assert auth_counts == {"verified": 1, "unsigned": 1}
     await shell.close()
     peer.close()
 
