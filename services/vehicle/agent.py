@@ -474,11 +474,13 @@ class VehicleAgent:
         look-ahead of it cut a lone car's delay in rsu mode from 1.97 to 0.92 s and
         rsu/slot's mean delay at 400 veh/h (demand experiment, seeds 0-1) from 10.2 to
         8.1 s, but the changed timing exposed two latent faults elsewhere in the default
-        demand grid, to fix first: in fp-only at 400 veh/h seed 1 two cars standing at
-        their lines (we-3, sn-5, from t = 79 s) each yield to the other for ever, and in
-        rsu/paper at 400 veh/h seed 0 the RSU told two cars ``C_SLOW`` that could no
-        longer stop comfortably before the zone (sn-6 at 63.95 s, we-3 at 64.15 s), and
-        they collided."""
+        demand grid: in fp-only at 400 veh/h seed 1 two cars standing at their lines
+        (we-3, sn-5, from t = 79 s) each yielded to the other for ever (fixed since:
+        ``AutonomousPlanner._arrival`` moves a path's estimate on by its age), and in
+        rsu/paper at 400 veh/h seed 0 the RSU told two committed ``C_FAST`` cars
+        ``C_SLOW`` (``_give_way_to`` then ``_yields``: between two committed cars the
+        later arriver yields, and its stop lies in the zone; sn-6 at 63.95 s, we-3 at
+        64.15 s), and they collided: to fix before this comes back."""
         plan = self.last_plan
         if plan is None:
             return -self.spec.limits.decel_comfort

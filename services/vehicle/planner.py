@@ -501,7 +501,7 @@ class AutonomousPlanner:
             theirs = self._fp_interval(now, fp, zone, crossing, where)
             if theirs is None:
                 continue
-            arrival = self._fp_arrival(fp, zone, crossing, where)
+            arrival = self._fp_arrival(now, fp, zone, crossing, where)
             if arrival is None:
                 continue  # its path does not cross ours here
             if self._order.get((crossing.intersection, fp_id), False) and theirs.planned:
@@ -653,15 +653,23 @@ class AutonomousPlanner:
         offset: float,
         heading: float,
         lane: str | None = None,
+        age: float = 0.0,
     ) -> _Arrival:
         """Arrival of a car whose centre was ``d_zone`` [m] before entering the (grown) zone
         at run time ``stamp`` [s] (now for this car and sensed ones, the send time of a
-        future path): an absolute time, so that a path received a period late gives the
-        same verdict as the sender's own fresh state (``line_arrival`` runs down at 1 s/s
-        along the blind-corner plan)."""
+        future path, ``age`` [s] ago): an absolute time, so that a path received a period
+        late gives the same verdict as the sender's own fresh state (``line_arrival`` runs
+        down at 1 s/s along the blind-corner plan). A car slower than
+        ``ARRIVAL_FLOOR_MPS`` is counted as creeping at the floor, whose estimate runs
+        down only at ``speed / floor`` s/s: its path's estimate is moved on by the rest
+        over ``age``. Without that, two cars standing at their lines judged each other
+        with estimates a period apart and each gave way to the other for ever (the
+        demand experiment, fp-only, found with a controller that stops more exactly)."""
         lim = self.limits
         d_line = d_zone - offset - ARRIVED_M
         t_line = stamp + line_arrival(d_line, speed, self.scenario.params.decel_comfort_mps2)
+        if age > 0.0 and d_line > 0.0 and speed < ARRIVAL_FLOOR_MPS:
+            t_line += age * (1.0 - max(speed, 0.0) / ARRIVAL_FLOOR_MPS)
         committed = speed * speed / (2.0 * lim.decel_emergency) > d_zone - COMMIT_MARGIN_M
         return _Arrival(t_line, committed and speed > 0.0, heading, lane)
 
@@ -674,7 +682,7 @@ class AutonomousPlanner:
         )
 
     def _fp_arrival(
-        self, fp: FuturePath, zone: _ZoneBox, crossing: Crossing, where: _InZone
+        self, now: float, fp: FuturePath, zone: _ZoneBox, crossing: Crossing, where: _InZone
     ) -> _Arrival | None:
         """Arrival of a car known from its future path, or None when its path does not come
         within ``d_margin_m`` of this route in the zone (opposing traffic, a turn that does
@@ -714,10 +722,13 @@ class AutonomousPlanner:
         if abs(wrap_angle(heading - own)) <= SAME_APPROACH_RAD:
             return None  # the same approach: car following, not right of way
         stamp = fp.header.time_us * 1e-6
-        on_lane = self._on_lane(stamp, fp.x, fp.y, fp.heading, fp.speed, fp.length, crossing)
+        age = max(now - stamp, 0.0)
+        on_lane = self._on_lane(
+            stamp, fp.x, fp.y, fp.heading, fp.speed, fp.length, crossing, age=age
+        )
         if on_lane is not None:
             return on_lane[2]  # measured along its lane: the numbers its sender computes
-        return self._arrival(stamp, d_zone, fp.speed, offset, heading)
+        return self._arrival(stamp, d_zone, fp.speed, offset, heading, age=age)
 
     def _lane_crosses(self, x: float, y: float, heading: float, crossing: Crossing) -> bool:
         """Does the lane a car at (x, y) with ``heading`` drives in cross this route here?
@@ -790,6 +801,7 @@ class AutonomousPlanner:
         speed: float,
         length: float,
         crossing: Crossing,
+        age: float = 0.0,
     ) -> tuple[Crossing, float, _Arrival] | None:
         """A car at (x, y) on a lane that crosses this route at ``crossing``, and not yet
         through it: that lane's crossing, the car's arc length on the lane [m] and its
@@ -814,7 +826,8 @@ class AutonomousPlanner:
         lane = self.scenario.lane(lane_id)
         d_zone = c.s_in - length / 2.0 - s_other
         offset = self._stop_offset[crossing.intersection]
-        arrival = self._arrival(stamp, d_zone, speed, offset, lane.heading_at(c.s_in), lane_id)
+        heading = lane.heading_at(c.s_in)
+        arrival = self._arrival(stamp, d_zone, speed, offset, heading, lane_id, age)
         return c, s_other, arrival
 
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from hypothesis import given, settings
+from hypothesis import assume, example, given, settings
 from hypothesis import strategies as st
 
 from protocol.messages import FuturePath, Header, Mode
@@ -304,3 +304,49 @@ def test_two_oncoming_left_turns_standing_at_their_lines_do_not_wait_for_each_ot
         east.plan(0.0, e, [w], {}).yielding_to == ("a-west",),
     ]
     assert waits.count(True) == 1
+
+
+def _aged_fp(sc: Scenario, t: TruthState, age: float) -> FuturePath:
+    """``t``'s future path as sent ``age`` [s] before ``t.t``: from where the car was then
+    (on at its speed), dated then."""
+    route = sc.route(sc.vehicle(t.id).route)
+    then = t.t - age
+    s0 = t.s - t.speed * age
+    steps = np.arange(0.0, 10.0, 0.1)
+    xy = route.points_at(s0 + t.speed * steps)
+    pts = np.column_stack([xy, then + steps])
+    x, y = route.point_at(s0)
+    header = Header(t.id, 1, round(then * 1e6))
+    return FuturePath(header, x, y, t.speed, t.heading, 4.5, 1.8, Mode.AUTO, pts)
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    st.floats(0.0, 1.5),
+    st.floats(-0.45, 0.45),
+    st.floats(0.0, 0.9),
+    st.floats(0.0, 0.9),
+    st.floats(0.0, 0.1),
+    st.floats(0.0, 0.1),
+)
+@example(0.5, 0.35, 0.0, 0.0, 0.0, 0.1)  # the demand experiment's pair, in the paper's geometry
+def test_slow_cars_at_their_lines_agree_whatever_their_paths_age(
+    da: float, gap: float, va: float, vb: float, age_a: float, age_b: float
+) -> None:
+    """Two cars standing or creeping (below the arrival floor) before their stop lines,
+    ``gap`` [m] apart in distance to their lines (around the 0.3 s tie at the 1 m/s
+    floor), each known to the other only by a future path up to a planning period old:
+    they never both wait for each other. (A path's arrival runs down at 1 s/s only for a
+    car at or above the floor; two cars standing at their lines judged each other a
+    period apart and each gave way to the other for ever: the demand experiment,
+    fp-only, 400 veh/h, seed 1.)"""
+    db = da + gap
+    assume(db >= 0.0)
+    sc = _paper()
+    pa, pb = planner(sc, "A"), planner(sc, "B")
+    now = 10.0
+    a = state(sc, "A", pa.crossings[0].s_stop - da, va, now)
+    b = state(sc, "B", pb.crossings[0].s_stop - db, vb, now)
+    a_waits = "B" in pa.plan(now, a, [], {"B": _aged_fp(sc, b, age_b)}).yielding_to
+    b_waits = "A" in pb.plan(now, b, [], {"A": _aged_fp(sc, a, age_a)}).yielding_to
+    assert not (a_waits and b_waits)
