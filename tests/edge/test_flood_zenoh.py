@@ -96,13 +96,15 @@ def test_the_flooder_stays_bounded_and_on_loopback() -> None:
 
 
 @pytest.mark.daemons
-@pytest.mark.slow  # 20-30 s: one signed paper run at speed 3 and the daemons' start
+@pytest.mark.slow  # 25-40 s: one signed paper run at speed 2 and the daemons' start
 def test_real_daemons_under_a_flood_refuse_it_and_finish(tmp_path: Path) -> None:
     """The benchmark's flood phase, short: real RSU and car processes, signed, a flooder
     process; counts and outcomes only."""
-    # speed 3: at 6 a 2-core machine running Python at half the usual speed ran the daemons
-    # so late under the flood that the run itself was no longer a real one (a collision)
-    data = measure(3.0, 5000.0, 500, speed=3.0, run_dir=tmp_path, phases=("flood",), warm_up=False)
+    # speed 2: at 6 a 2-core machine running Python at half the usual speed ran the daemons
+    # so late under the flood that the run itself was no longer a real one (a collision);
+    # at 3, a CI run on 3 Dec saw car A's loop fall 6.1 s behind (458 late ticks) until its
+    # Zenoh liveliness token lapsed and the monitor failed the run ("A lost")
+    data = measure(3.0, 5000.0, 500, speed=2.0, run_dir=tmp_path, phases=("flood",), warm_up=False)
     flood = data["flood"]
     assert data["crashed"] == [] and flood["runs"] >= 1 and flood["ok_runs"] == flood["runs"]
     assert flood["collisions"] == 0 and flood["all_finished"]
