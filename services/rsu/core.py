@@ -79,7 +79,10 @@ car merges into a lane a straight car also uses (``KNOWN_FAILURE`` in the test).
 
 Limits, stated: a car that can no longer stop before the zone (committed) keeps its
 way, so a conflict between two committed cars cannot be undone by the RSU, only
-prevented; the property test starts every car where it can still stop.
+prevented; the property test starts every car where it can still stop. The one
+exception: of two committed cars, one that can still keep its body out of the zone
+braking at ``HARD_STOP_FACTOR`` times its comfortable deceleration yields to one that
+cannot (``_stops_short``, ``tests/rsu/test_issue12_causes.py`` cause 9).
 
 Several RSUs (issue 12): each RSU coordinates a car only while it approaches that
 RSU's zone (in coverage, its path entering the zone within ``T_free``) and terminates it
@@ -138,7 +141,7 @@ from services.rsu.reservation import (
     path_headings,
     within_wire_bounds,
 )
-from services.rsu.velocity import SpeedPlan, VelocityManager
+from services.rsu.velocity import HARD_STOP_FACTOR, SpeedPlan, VelocityManager
 
 __all__ = ["Outgoing", "Policy", "RsuConfig", "RsuCore", "path_problem"]
 
@@ -557,28 +560,48 @@ class RsuCore:
         zone's edge along ``points`` (default: its table entry). A car whose front is
         already in the zone is committed too, wherever its path ends: it blocks the
         crossing until it has driven on (found in ``four-way-flows``, slot, seed 0)."""
-        if self._zone.contains_point(car.x, car.y):
+        gap = self._front_gap(car, points)
+        if gap is None:
+            return False
+        braking = car.speed * car.speed / (2.0 * self._decel(car))
+        return gap <= braking + self.config.stop_gap_m
+
+    def _stops_short(self, car: _Car, points: FloatArray | None = None) -> bool:
+        """The car can still keep its body out of the zone: a ``C_SLOW`` car whose stop
+        does (``held_short``), or one whose front can stop before the zone braking at
+        ``HARD_STOP_FACTOR`` times its comfortable deceleration (as a stop would,
+        ``VelocityManager.stop_limit``)."""
+        if car.mode == Mode.C_SLOW:
+            return car.held_short
+        gap = self._front_gap(car, points)
+        if gap is None:
             return True
+        return car.speed * car.speed <= 2.0 * HARD_STOP_FACTOR * self._decel(car) * gap
+
+    def _front_gap(self, car: _Car, points: FloatArray | None = None) -> float | None:
+        """How far the car's front is from the zone along ``points`` (default: its table
+        entry) [m]: 0 when its centre or front is in the zone, None when the path does not
+        reach the zone."""
+        if self._zone.contains_point(car.x, car.y):
+            return 0.0
         half = 0.5 * car.length
         front_x = car.x + half * math.cos(car.heading)
         front_y = car.y + half * math.sin(car.heading)
         if self._zone.contains_point(front_x, front_y):
-            return True
+            return 0.0
         if points is None:
             entry = self.table.get(car.vehicle)
             if entry is None:
-                return False
+                return None
             points = entry.points
         span = paths.zone_span(points, self._zone)
         if span is None:
-            return False
+            return None
         s = paths.arc_length(points)
         # from the point of the path nearest the car now (an entry may be older than now)
         xy = points[: span[0] + 1, :2]
         here = int(np.argmin(np.hypot(xy[:, 0] - car.x, xy[:, 1] - car.y)))
-        gap = float(s[span[0]] - s[here]) - 0.5 * car.length
-        braking = car.speed * car.speed / (2.0 * self._decel(car))
-        return gap <= braking + self.config.stop_gap_m
+        return max(float(s[span[0]] - s[here]) - half, 0.0)
 
     def _decel(self, car: _Car) -> float:
         """The car's own comfortable deceleration [m/s²] (its path's limits, else ours)."""
@@ -713,7 +736,9 @@ class RsuCore:
         """Must ``car`` (whose path is ``car_points``) give way to ``other``?
 
         A follower yields to the car ahead of it in its lane, and never the other way.
-        A car that can no longer stop before the zone never yields to one that can. Then
+        A car that can no longer stop before the zone never yields to one that can; of two
+        that cannot, one that still can braking hard (:meth:`_stops_short`) yields to one
+        that cannot even so. Then
         (issue 12, cause 3): a ``C_SLOW`` car's entry is already its stop (or slot) path,
         the most it can give, so whoever conflicts with it yields, ``C_FAST`` too; a
         ``C_FAST`` car has priority over an ``AUTO`` one; between two ``C_FAST`` cars
@@ -727,6 +752,14 @@ class RsuCore:
         car_committed, other_committed = self._committed(car, car_points), self._committed(other)
         if car_committed != other_committed:
             return other_committed
+        if car_committed:
+            # Two committed cars: only one that can still keep out of the zone braking
+            # hard yields (its stop does); demoting one that cannot leaves it standing in
+            # the crossing, where the other drives into it (demand experiment, paper,
+            # 400 veh/h, seed 0, with the final stop: both demoted in turn, and collided).
+            car_short = self._stops_short(car, car_points)
+            if car_short != self._stops_short(other):
+                return car_short
         fast, slow = Mode.C_FAST, Mode.C_SLOW
         if other.mode == slow:
             return True

@@ -54,12 +54,22 @@ from services.vehicle.coordination import (
 )
 from services.vehicle.future_path import future_path_points
 from services.vehicle.planner import AutonomousPlanner, Coordination, Plan, Reason
-from services.vehicle.profile import FloatArray
+from services.vehicle.profile import FloatArray, SpeedProfile
 
 log = logging.getLogger("crosspath.vehicle")
 
 # The controller's look-ahead and time constant and the future-path staleness are the
 # scenario's [vehicle_params] (services.model.scenario.VehicleParams), in ``AgentSpec.params``.
+
+STOP_MARGIN_M = 0.1
+"""A final stop ends this far short of the profile's rest point [m] (the lag's error)."""
+
+STOP_ROOM_M = 0.01
+"""Closer than this to the end of a final stop [m], the car brakes at once to rest."""
+
+FINAL_STOP_M = 1.5
+"""A car this close to where its profile comes to rest [m] (plus the controller's
+look-ahead) brakes at the constant deceleration that ends there."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -161,6 +171,9 @@ class VehicleAgent:
     released by an attacker, which the replay window cannot tell from a first delivery)
     is ignored, so a stale C_SLOW never undoes a newer release. Written only for RSUs
     whose message passed the owner rule and whose reach is known (a few per route)."""
+    _rest_of: tuple[SpeedProfile | None, float | None] = field(init=False, default=(None, None))
+    """The last plan's profile and where it comes to rest (:meth:`_rest_s`), computed once
+    per plan (10 Hz) for the controller (20 Hz)."""
 
     def __post_init__(self) -> None:
         p = self.scenario.params
@@ -467,20 +480,15 @@ class VehicleAgent:
     def command(self, body: BodyState) -> float:
         """Acceleration command [m/s²] tracking the last plan (20 Hz).
 
-        Tried and set aside (3 Dec): tracking the speed a look-ahead ahead creeps over
-        the last metre of a stop (a lone car's stop at its goal from 13.9 m/s takes
-        8.6 s against 6.9 s at the comfortable deceleration). Braking at the constant
-        deceleration that ends at the profile's rest point once within 1.5 m plus the
-        look-ahead of it cut a lone car's delay in rsu mode from 1.97 to 0.92 s and
-        rsu/slot's mean delay at 400 veh/h (demand experiment, seeds 0-1) from 10.2 to
-        8.1 s, but the changed timing exposed two latent faults elsewhere in the default
-        demand grid: in fp-only at 400 veh/h seed 1 two cars standing at their lines
-        (we-3, sn-5, from t = 79 s) each yielded to the other for ever (fixed since:
-        ``AutonomousPlanner._arrival`` moves a path's estimate on by its age), and in
-        rsu/paper at 400 veh/h seed 0 the RSU told two committed ``C_FAST`` cars
-        ``C_SLOW`` (``_give_way_to`` then ``_yields``: between two committed cars the
-        later arriver yields, and its stop lies in the zone; sn-6 at 63.95 s, we-3 at
-        64.15 s), and they collided: to fix before this comes back."""
+        The final stop (:meth:`_final_stop`): tracking the speed a look-ahead ahead
+        creeps over the last metre of a stop (a lone car's stop at its goal from 13.9 m/s
+        took 8.6 s against 6.9 s at the comfortable deceleration), so within 1.5 m plus
+        the look-ahead of the profile's rest point the car brakes at the constant
+        deceleration that ends there. A lone car's delay in rsu mode went from 1.97 to
+        0.92 s. Tried first on 3 Dec and set aside until two faults it exposed were fixed:
+        an fp-only mutual yield (``AutonomousPlanner._arrival``) and two committed cars
+        both told to stop by the RSU (``RsuCore._stops_short``, and the car keeping the
+        RSU's stop, ``AutonomousPlanner._stop_at``)."""
         plan = self.last_plan
         if plan is None:
             return -self.spec.limits.decel_comfort
@@ -494,7 +502,56 @@ class VehicleAgent:
         v_next = prof.speed_at(look + step)
         a_ff = (v_next * v_next - v_ref * v_ref) / (2.0 * step)
         cmd = a_ff + (v_ref - body.v) / self.spec.params.control_time_constant_s
+        if self._rest_of[0] is not prof:
+            self._rest_of = (prof, self._rest_s(prof))
+        stop = self._rest_of[1]
+        if stop is not None:
+            final = self._final_stop(body, stop)
+            if final is not None:
+                cmd = final
         return min(cmd, self._top_speed_room(body))
+
+    def _rest_s(self, prof: SpeedProfile) -> float | None:
+        """Where the profile comes to rest after moving [m]: between its last moving grid
+        point and the first standing one, where a comfortable stop from the former ends;
+        None if it never moves or never stops."""
+        v_all = prof.v
+        moving = np.flatnonzero(v_all > 1e-9)
+        if moving.size == 0:
+            return None
+        standing = np.flatnonzero(v_all[moving[0] :] <= 1e-9)
+        if standing.size == 0:
+            return None
+        k = int(moving[0] + standing[0])
+        v = float(v_all[k - 1])
+        room = v * v / (2.0 * self.spec.limits.decel_comfort)
+        return float(min(prof.s[k - 1] + room, prof.s[k]))
+
+    def _final_stop(self, body: BodyState, stop: float) -> float | None:
+        """On the profile's last braking ramp to rest at ``stop`` [m]: the constant
+        deceleration [m/s², < 0] that ends at rest :data:`STOP_MARGIN_M` short of it, from
+        where the actuator lag takes the car; None elsewhere (the tracking command).
+
+        Tracking the speed a look-ahead ahead brakes a little early all along a ramp
+        (that is its lag compensation) but turns into a creep in its last metre, where
+        the ramp's √ shape drops to 0 within the look-ahead: a stop from 13.9 m/s took
+        8.6 s instead of 6.9 s. Only within :data:`FINAL_STOP_M` plus the look-ahead of
+        the rest point, and where the stop needs at least half the comfortable
+        deceleration (a car far short of its stop point still drives up to it)."""
+        lim = self.spec.limits
+        dc = lim.decel_comfort
+        reach = FINAL_STOP_M + max(body.v, 0.5) * self.spec.params.control_lookahead_s
+        if not body.s < stop <= body.s + reach:
+            return None
+        lag = lim.actuator_lag_s
+        v = max(body.v + body.a * lag, 0.0)
+        room = stop - STOP_MARGIN_M - body.s - lag * (body.v + 0.5 * body.a * lag)
+        if room <= STOP_ROOM_M:  # at its end: stop; standing, tracking takes it the rest
+            return -lim.decel_emergency if body.v > 0.0 else None
+        need = v * v / (2.0 * room)
+        if need < 0.5 * dc:
+            return None
+        return -min(need, lim.decel_emergency)
 
     def _top_speed_room(self, body: BodyState) -> float:
         """Largest command [m/s²] that keeps the car at or below V_max despite the lag.

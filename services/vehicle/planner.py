@@ -280,6 +280,12 @@ class AutonomousPlanner:
             early = backward_pass(target, DS, lim.decel_comfort)
             smooth = np.sqrt(np.maximum(v0 * v0 - 2.0 * lim.decel_comfort * (s - s0), 0.0))
             constraints.append(_Constraint(Reason.COORDINATED, np.maximum(early, smooth)))
+            if coordination.target_v[-1] <= 0.0:
+                # ... except where the coordinated path ends at rest: the RSU reserved that
+                # stop (short of the zone, behind the car ahead) and may brake the car
+                # harder than comfortably to keep it there
+                end = float(coordination.target_s[-1])
+                constraints.append(_Constraint(Reason.COORDINATED, self._stop_at(s, s0, v0, end)))
         for crossing in self._crossings_ahead(s0):
             if not coordination.lift_caution and not self._clear_view(now, ego, crossing):
                 cap = self._stop_line_cap(s, s0, v0, crossing)
@@ -370,16 +376,24 @@ class AutonomousPlanner:
             room = s_stop - s0
             if room < -0.3:
                 continue  # already past this point
-            needed = v0 * v0 / (2.0 * max(room, 1e-3))
-            if needed > lim.decel_emergency:
+            if v0 * v0 / (2.0 * max(room, 1e-3)) > lim.decel_emergency:
                 continue
-            decel = (
-                lim.decel_comfort
-                if needed <= lim.decel_comfort
-                else min(needed * 1.1, lim.decel_emergency)
-            )
-            return stop_cap(s, max(s_stop, s0), decel)
+            return self._stop_at(s, s0, v0, s_stop)
         return None
+
+    def _stop_at(self, s: FloatArray, s0: float, v0: float, s_stop: float) -> FloatArray:
+        """Cap for stopping at ``s_stop`` [m]: comfortably when that reaches it, harder
+        when it must (10 % to spare, as at a stop line), at most the emergency
+        deceleration (a stop that even that misses is as close as the car can make it)."""
+        lim = self.limits
+        room = s_stop - s0
+        needed = v0 * v0 / (2.0 * max(room, 1e-3))
+        decel = (
+            lim.decel_comfort
+            if needed <= lim.decel_comfort
+            else min(needed * 1.1, lim.decel_emergency)
+        )
+        return stop_cap(s, max(s_stop, s0), decel)
 
     def _clear_view(self, now: float, ego: TruthState, crossing: Crossing) -> bool:
         """Blind-corner rule: can every crossing lane be seen far enough upstream?"""

@@ -11,6 +11,8 @@ import math
 from typing import TypeVar
 
 import numpy as np
+from hypothesis import assume, given, settings
+from hypothesis import strategies as st
 
 from protocol.messages import (
     AutonomousPath,
@@ -24,7 +26,7 @@ from protocol.messages import (
 from services.model.geometry import Polyline
 from services.model.types import Policy
 from services.rsu import core as rsu_core
-from services.rsu import paths
+from services.rsu import paths, velocity
 from services.rsu.config import RsuConfig
 from services.rsu.core import Outgoing, RsuCore
 from services.rsu.reservation import ReservationTable, follow_distance
@@ -410,3 +412,109 @@ def test_cause8_a_car_held_by_another_body_keeps_its_order() -> None:
     assert not core._held_by(core._cars["S"], core.table.get("S").points, core._cars["W"])  # type: ignore[union-attr]
     assert core.mode_of("W") == Mode.C_SLOW
     assert core.counters["order_kept"] >= 1
+
+
+# -- cause 9: two committed cars ---------------------------------------------------------------
+# Found in the demand experiment (paper, 400 veh/h, straight, seed 0, with the final-stop
+# controller): of two C_FAST cars that could no longer stop comfortably before the zone,
+# the later arriver was told to stop; 3 cm past the hard stop's reach, its stop fell back to
+# a comfortable one in the middle of the crossing, the other car was then told to stop for
+# it, and they collided.
+
+
+def _front_out_of_zone(plan_points: np.ndarray, heading: float) -> bool:
+    """The body of a car at rest at the plan's last point keeps its front out of the zone."""
+    x, y = float(plan_points[-1, 0]), float(plan_points[-1, 1])
+    front = (x + 2.25 * math.cos(heading), y + 2.25 * math.sin(heading))
+    return not paths.ConvexZone.of(ZONE).contains_point(*front)
+
+
+@settings(max_examples=150, deadline=None)
+@given(v=st.floats(1.0, VMAX), slack=st.floats(-0.5, 1.0))
+def test_cause9_a_stop_that_can_stay_out_of_the_zone_does(v: float, slack: float) -> None:
+    """B northbound at ``v``, its front ``slack`` x its hard braking distance (at
+    ``HARD_STOP_FACTOR`` x comfortable) plus ``slack`` [m] from the zone. Its paper stop
+    keeps the front out of the zone whenever hard braking can, the whole stop gap short
+    when that fits; comfortable otherwise, as the paper's."""
+    cfg = config()
+    hard = v * v / (2.0 * velocity.HARD_STOP_FACTOR * cfg.decel_comfort_mps2)
+    front_gap = hard + slack
+    y0 = -3.5 - front_gap - 2.25
+    b = straight((CROSS[0], y0), NORTH, v, 0.0)
+    plan = VelocityManager(cfg).plan(
+        "B",
+        message(AutonomousPath, "B", b, v, NORTH, Mode.C_SLOW),
+        Mode.C_SLOW,
+        0.0,
+        ReservationTable(),
+    )
+    stop_y = float(plan.points[-1, 1])
+    if slack >= 1e-6:
+        assert plan.short and _front_out_of_zone(plan.points, NORTH)
+        if front_gap - cfg.stop_gap_m >= hard + 1e-6:
+            assert stop_y + 2.25 <= -3.5 - cfg.stop_gap_m + 1e-6
+    elif slack <= -1e-6:
+        assert not plan.short
+        comfortable = v * v / (2.0 * cfg.decel_comfort_mps2)
+        assert math.isclose(stop_y - y0, comfortable, abs_tol=0.05)
+
+
+def _committed_pair(a_gap: float, a_v: float, b_gap: float, b_v: float) -> RsuCore:
+    """A eastbound and B northbound, both C_FAST at V_max through the crossing, fronts
+    ``a_gap`` / ``b_gap`` [m] from the zone at ``a_v`` / ``b_v``."""
+    core = RsuCore(config(), listen_s=0.0)
+    for vid, gap, v, heading in (("A", a_gap, a_v, EAST), ("B", b_gap, b_v, NORTH)):
+        d = 3.5 + gap + 2.25
+        x, y = (-d, CROSS[1]) if heading == EAST else (CROSS[0], -d)
+        car = rsu_core._Car(vid, mode=Mode.C_FAST, x=x, y=y, heading=heading, speed=v)
+        car.autonomous = message(AutonomousPath, vid, straight((x, y), heading, v, 0.0), v, heading)
+        core._cars[vid] = car
+        core.table.update(vid, straight((x, y), heading, v, 0.0), 0.0)
+    return core
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    a_gap=st.floats(0.5, 30.0),
+    a_v=st.floats(3.0, VMAX),
+    b_gap=st.floats(0.5, 30.0),
+    b_v=st.floats(3.0, VMAX),
+)
+def test_cause9_of_two_committed_cars_one_that_can_stay_out_yields(
+    a_gap: float, a_v: float, b_gap: float, b_v: float
+) -> None:
+    """Whatever their speeds and distances: of two committed crossing cars, exactly one
+    yields, and when either can still keep its body out of the zone braking hard, the
+    one that yields can."""
+    core = _committed_pair(a_gap, a_v, b_gap, b_v)
+    a, b = core._cars["A"], core._cars["B"]
+    assume(core._committed(a) and core._committed(b))
+    a_yields = core._yields(a, core.table.get("A").points, b)  # type: ignore[union-attr]
+    b_yields = core._yields(b, core.table.get("B").points, a)  # type: ignore[union-attr]
+    assert a_yields != b_yields
+    if core._stops_short(a) or core._stops_short(b):
+        assert core._stops_short(a if a_yields else b)
+
+
+def test_cause9_a_committed_car_keeps_its_way_past_one_stopped_short() -> None:
+    """A (13.9 m/s, front 16 m from the zone: it cannot stop before it) arrives after B
+    (6 m/s, front 5 m from it: only a hard stop keeps it out). B is told to stop, out of
+    the zone, and A's next autonomous path keeps C_FAST."""
+    core = _committed_pair(16.0, VMAX, 5.0, 6.0)
+    a, b = core._cars["A"], core._cars["B"]
+    assert core._committed(a) and core._committed(b)
+    assert not core._stops_short(a) and core._stops_short(b)
+    a_path = core.table.get("A").points  # type: ignore[union-attr]
+    assert paths.zone_entry_time(a_path, ZONE) > paths.zone_entry_time(
+        core.table.get("B").points,  # type: ignore[union-attr]
+        ZONE,
+    )  # the later arriver, which the paper's rule alone would stop
+    out = core._give_way_to(0.0, a, None)
+    assert ("ModeCommand", Mode.C_SLOW) in sent(out, "B")
+    b_stop = core.table.get("B").points  # type: ignore[union-attr]
+    assert b.held_short and _front_out_of_zone(b_stop, NORTH)
+    a.x += 0.1 * VMAX
+    nxt = straight((a.x, a.y), EAST, VMAX, 0.1)
+    core.on_message(0.1, message(AutonomousPath, "A", nxt, VMAX, EAST, Mode.C_FAST, 2), "rsu-1")
+    assert core.mode_of("A") == Mode.C_FAST
+    assert no_conflict_within(core, 0.1, config().t_collision_s) == []

@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 from protocol.messages import FuturePath, Header, Mode
 from services.model.kinematics import TruthState
 from services.model.scenario import Scenario, ScenarioFile, limits_from_params, load_scenario
-from services.vehicle.planner import AutonomousPlanner, Coordination, Reason
+from services.vehicle.planner import DS, AutonomousPlanner, Coordination, Reason
 from tests.vehicle.conftest import PAPER
 
 CENTER_S = 200.0
@@ -350,3 +350,27 @@ def test_slow_cars_at_their_lines_agree_whatever_their_paths_age(
     a_waits = "B" in pa.plan(now, a, [], {"B": _aged_fp(sc, b, age_b)}).yielding_to
     b_waits = "A" in pb.plan(now, b, [], {"A": _aged_fp(sc, a, age_a)}).yielding_to
     assert not (a_waits and b_waits)
+
+
+@settings(max_examples=100, deadline=None)
+@given(v0=st.floats(1.0, 13.8), spare=st.floats(0.2, 40.0))
+def test_a_coordinated_path_that_ends_at_rest_is_a_stop_the_car_keeps(
+    paper: Scenario, v0: float, spare: float
+) -> None:
+    """A ``C_SLOW`` coordinated path (speed 0 at every point) ends where the RSU reserved
+    the car's stop, short of the zone or behind the car ahead; it may need harder than
+    comfortable braking. The car stops there (or short of it), whatever it needs up to
+    its emergency deceleration: the comfortable rule alone overshot by 2.6 m into the
+    crossing (demand experiment, paper, 400 veh/h, seed 0)."""
+    lim = paper.limits("A")
+    s0 = 60.0
+    room = v0 * v0 / (2.0 * lim.decel_emergency) + spare
+    end = s0 + room
+    target_s = np.array([s0, 0.5 * (s0 + end), end, end])
+    c = Coordination(target_s=target_s, target_v=np.zeros(4), skip_yield=True)
+    plan = planner(paper, "A").plan(0.0, state(paper, "A", s0, v0), [], {}, c)
+    stop = plan.profile.stop_s()
+    assert stop is not None and stop <= end + DS  # the profile's grid
+    comfortable = v0 * v0 / (2.0 * lim.decel_comfort)
+    if comfortable <= room:  # no harder than comfortable when that reaches it
+        assert stop >= s0 + comfortable - DS
