@@ -74,8 +74,9 @@ the same step. On the demand experiment's straight flows it helped (400 veh/h, s
 that starts from rest costs more than the wait it saves once turning bodies occupy
 the zone longer.
 
-Status: the property holds for ``slot``; for ``paper`` it still fails where a turning
-car merges into a lane a straight car also uses (``KNOWN_FAILURE`` in the test).
+Status: the property holds for both policies, the case random search once found under
+``paper`` included (``FOUND_BY_SEARCH`` in the test: the follow rule's lane was measured
+across the asking car's heading only).
 
 Limits, stated: a car that can no longer stop before the zone (committed) keeps its
 way, so a conflict between two committed cars cannot be undone by the RSU, only

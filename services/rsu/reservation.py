@@ -45,7 +45,8 @@ apart. So a pair of points also conflicts when:
   never moves has no heading and is in the way of any moving path; two that never
   move cannot run into each other),
 * they are in one lane: less than half the two widths plus :data:`LANE_SLACK_M`
-  apart sideways (two cars side by side in adjacent lanes are not),
+  apart sideways across either car's heading (two cars side by side in adjacent lanes
+  are not; either, so that the rule does not depend on which car asks),
 * their centres are within the *follow distance* ``(L1 + L2) / 2 + follow_gap_m``
   (lengths capped as above; default gap 1.0 m: 5.5 m for two standard cars),
 * and their times differ by less than ``follow_window_s`` (default 0.3 s: more than
@@ -232,6 +233,21 @@ def follow_distance(l1: float, l2: float, gap: float) -> float:
     return 0.5 * (min(l1, MAX_BODY_LENGTH_M) + min(l2, MAX_BODY_LENGTH_M)) + gap
 
 
+def _in_lane(
+    hq: FloatArray, ho: FloatArray, dx: FloatArray, dy: FloatArray, lat: float | FloatArray
+) -> BoolArray:
+    """Pairs of points (headings ``hq``, ``ho`` (K, 2), NaN for a path that never moves;
+    offsets ``dx``, ``dy`` (K,)) in one lane: less than ``lat`` [m] apart sideways across
+    either car's heading. Either, so that the rule is the same whichever car asks: across
+    the query's heading alone, a car standing before the zone saw a turning car cross
+    0.8 m in front of its lane's line as in its lane, and the turning car did not see the
+    standing one (``tests/rsu/test_invariant.py``, ``FOUND_BY_SEARCH``)."""
+    side_q = np.abs(hq[:, 0] * dy - hq[:, 1] * dx)
+    side_o = np.abs(ho[:, 0] * dy - ho[:, 1] * dx)
+    out: BoolArray = (side_q <= lat) | (side_o <= lat)  # NaN (no heading) compares False
+    return out
+
+
 def _pair_conflict(
     vehicle: str,
     q: FloatArray,
@@ -276,11 +292,7 @@ def _pair_conflict(
         # a path that never moves (no heading) is in the way of one that does
         q_still, o_still = np.isnan(uq[:, 0]), np.isnan(uo[:, 0])
         same_way = (cos >= _SAME_WAY_COS) | (q_still ^ o_still)
-        # lateral offset across the lane (the query's heading, else the other's)
-        ux = np.where(np.isnan(uq[:, 0]), uo[:, 0], uq[:, 0])
-        uy = np.where(np.isnan(uq[:, 1]), uo[:, 1], uq[:, 1])
-        side = np.abs(ux * dy - uy * dx)
-        in_lane = side <= lat
+        in_lane = _in_lane(uq, uo, dx, dy, lat)
         hit |= same_way & in_lane & (dist2 <= f2) & (gap_t < window)
     if not hit.any():
         return None
@@ -892,11 +904,8 @@ class ReservationTable:
                 cos = hq[:, 0] * ho[:, 0] + hq[:, 1] * ho[:, 1]
                 q_still, o_still = np.isnan(hq[:, 0]), np.isnan(ho[:, 0])
                 same_way = (cos >= _SAME_WAY_COS) | (q_still ^ o_still)
-                ux = np.where(q_still, ho[:, 0], hq[:, 0])
-                uy = np.where(np.isnan(hq[:, 1]), ho[:, 1], hq[:, 1])
-                side = np.abs(ux * mdy - uy * mdx)
                 hit = np.zeros(qi.shape[0], dtype=np.bool_)
-                hit[maybe] = same_way & (side <= lat_slot[owner[maybe]])
+                hit[maybe] = same_way & _in_lane(hq, ho, mdx, mdy, lat_slot[owner[maybe]])
             found_q.append(qi[hit])
             found_o.append(oj[hit])
             found_owner.append(owner[hit])

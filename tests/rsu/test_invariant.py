@@ -244,7 +244,7 @@ def situations(draw: st.DrawFn, n_max: int = 5) -> list[tuple[str, float, float]
 @settings(
     max_examples=4,
     deadline=None,
-    derandomize=True,  # CI-stable; the known failure below is what random search found
+    derandomize=True,  # CI-stable; FOUND_BY_SEARCH below is what random search found
     suppress_health_check=[HealthCheck.too_slow],
 )
 @given(starts=situations())
@@ -254,12 +254,13 @@ def test_invariant_holds_for_random_n_car_situations(
     _drive(policy, starts, 45.0, cp_change_m)
 
 
-# A situation random search found where the invariant does not hold yet (issue 12,
-# left for the next round): two cars of the east approach, one stopped, and a left
-# turn from the south into the west-bound lane; a C_SLOW car's stop path ends up in
-# conflict with the turning car's within T_collision. strict: when fixed, this fails
-# and the example moves into the passing set.
-KNOWN_FAILURE = [
+# A situation random search found (issue 12): three cars of the east approach turning
+# right, one stopped, and a left turn from the south into the west-bound lane. Under
+# paper, a car held before the zone and the turning car crossing 0.8 m in front of its
+# lane's line were one lane's follower and leader by the standing car's heading, not by
+# the turning car's; the RSU asked the turning car and found no conflict. The follow
+# rule now measures sideways across either car's heading (services.rsu.reservation).
+FOUND_BY_SEARCH = [
     ("en", 55.964273891152104, 6.0),
     ("en", 46.25158189414503, 0.0),
     ("en", 84.25158189414503, 7.0),
@@ -267,6 +268,6 @@ KNOWN_FAILURE = [
 ]
 
 
-@pytest.mark.xfail(strict=True, raises=AssertionError, reason="issue 12: open invariant case")
-def test_invariant_known_failure_paper() -> None:
-    _drive(Policy.PAPER, KNOWN_FAILURE, 45.0)
+@pytest.mark.parametrize("policy", [Policy.PAPER, Policy.SLOT])
+def test_invariant_holds_where_random_search_once_broke_it(policy: Policy) -> None:
+    _drive(policy, FOUND_BY_SEARCH, 45.0)

@@ -229,9 +229,12 @@ def test_indexed_query_equals_brute_force(
                 if q_still and o_still:
                     continue
                 same = q_still != o_still or qux * oux + quy * ouy >= math.cos(SAME_WAY_RAD)
-                ux, uy = (oux, ouy) if q_still else (qux, quy)
                 close = dx * dx + dy * dy <= f * f and abs(qt - ot) < FOLLOW_WINDOW_S
-                if same and close and abs(ux * dy - uy * dx) <= lane:
+                # in one lane across either car's heading (a still path has none)
+                in_lane = (not q_still and abs(qux * dy - quy * dx) <= lane) or (
+                    not o_still and abs(oux * dy - ouy * dx) <= lane
+                )
+                if same and close and in_lane:
                     hit = True
         expected[f"v{i}"] = hit
     assert {c.vehicle for c in slow} == {v for v, hit in expected.items() if hit}
@@ -239,6 +242,29 @@ def test_indexed_query_equals_brute_force(
         assert isinstance(c, Conflict)
         assert now <= c.self_time <= c.time <= now + horizon
         assert now <= c.other_time <= c.time
+
+
+@settings(max_examples=300, deadline=None)
+@given(a=_path, a_shape=_shape, b=_path, b_shape=_shape, now=st.sampled_from([0.0, 1.0]))
+def test_a_conflict_is_the_same_whichever_car_asks(
+    a: np.ndarray,
+    a_shape: tuple[float, float],
+    b: np.ndarray,
+    b_shape: tuple[float, float],
+    now: float,
+) -> None:
+    """The table answers the RSU for one car and the invariant for every pair: A's path
+    conflicts with B's exactly when B's conflicts with A's (the follow rule's lane was
+    once measured across the asking car's heading only, and a turning car did not see a
+    car it nearly touched that saw it, ``tests/rsu/test_invariant.py``)."""
+    table = ReservationTable(D, H, 0.5)
+    table.update("a", a, now, a_shape)
+    table.update("b", b, now, b_shape)
+    a_asks = table.conflicts("a", a, now, 10.0, shape=a_shape)
+    b_asks = table.conflicts("b", b, now, 10.0, shape=b_shape)
+    assert bool(a_asks) == bool(b_asks)
+    if a_asks:
+        assert a_asks[0].time == b_asks[0].time
 
 
 @settings(max_examples=100, deadline=None)
