@@ -561,7 +561,10 @@ class RsuCore:
         zone's edge along ``points`` (default: its table entry). A car whose front is
         already in the zone is committed too, wherever its path ends: it blocks the
         crossing until it has driven on (found in ``four-way-flows``, slot, seed 0)."""
-        gap = self._front_gap(car, points)
+        return self._committed_at(car, self._front_gap(car, points))
+
+    def _committed_at(self, car: _Car, gap: float | None) -> bool:
+        """:meth:`_committed` of a car whose front is ``gap`` from the zone (:meth:`_front_gap`)."""
         if gap is None:
             return False
         braking = car.speed * car.speed / (2.0 * self._decel(car))
@@ -572,9 +575,13 @@ class RsuCore:
         does (``held_short``), or one whose front can stop before the zone braking at
         ``HARD_STOP_FACTOR`` times its comfortable deceleration (as a stop would,
         ``VelocityManager.stop_limit``)."""
+        gap = None if car.mode == Mode.C_SLOW else self._front_gap(car, points)
+        return self._short_at(car, gap)
+
+    def _short_at(self, car: _Car, gap: float | None) -> bool:
+        """:meth:`_stops_short` of a car whose front is ``gap`` from the zone."""
         if car.mode == Mode.C_SLOW:
             return car.held_short
-        gap = self._front_gap(car, points)
         if gap is None:
             return True
         return car.speed * car.speed <= 2.0 * HARD_STOP_FACTOR * self._decel(car) * gap
@@ -750,7 +757,9 @@ class RsuCore:
         other_entry = self.table.get(other.vehicle)
         if other_entry is not None and self._ahead_in_lane(car, other, other_entry.points):
             return False
-        car_committed, other_committed = self._committed(car, car_points), self._committed(other)
+        car_gap, other_gap = self._front_gap(car, car_points), self._front_gap(other)
+        car_committed = self._committed_at(car, car_gap)
+        other_committed = self._committed_at(other, other_gap)
         if car_committed != other_committed:
             return other_committed
         if car_committed:
@@ -758,8 +767,8 @@ class RsuCore:
             # hard yields (its stop does); demoting one that cannot leaves it standing in
             # the crossing, where the other drives into it (demand experiment, paper,
             # 400 veh/h, seed 0, with the final stop: both demoted in turn, and collided).
-            car_short = self._stops_short(car, car_points)
-            if car_short != self._stops_short(other):
+            car_short = self._short_at(car, car_gap)
+            if car_short != self._short_at(other, other_gap):
                 return car_short
         fast, slow = Mode.C_FAST, Mode.C_SLOW
         if other.mode == slow:
