@@ -130,16 +130,24 @@ async def test_live_page_follows_what_is_published_on_zenoh() -> None:
 
 
 @contextlib.asynccontextmanager
-async def process(*argv: str, output: bool = True) -> AsyncIterator[asyncio.subprocess.Process]:
+async def process(
+    *argv: str, output: bool = True, log: Path | None = None
+) -> AsyncIterator[asyncio.subprocess.Process]:
     """``argv`` in its own session, interrupted (then killed) at the end; its stdout
-    readable when ``output``, else discarded."""
+    readable when ``output``, else written to ``log`` (for a failure's message) or
+    discarded."""
+    sink: Any = asyncio.subprocess.PIPE if output else asyncio.subprocess.DEVNULL
+    if not output and log is not None:
+        sink = log.open("wb")
     proc = await asyncio.create_subprocess_exec(
         *argv,
         cwd=REPO,
-        stdout=asyncio.subprocess.PIPE if output else asyncio.subprocess.DEVNULL,
+        stdout=sink,
         stderr=asyncio.subprocess.STDOUT,
         start_new_session=True,
     )
+    if not isinstance(sink, int):
+        sink.close()  # the child has its own descriptor
     try:
         yield proc
     finally:
@@ -174,6 +182,7 @@ async def test_view_of_real_daemons_via_run_dir(tmp_path: Path) -> None:
             "--run-dir",
             str(run_dir),
             output=False,
+            log=tmp_path / "up.log",
         ) as up,
         process(*cli, "view", "--run-dir", str(run_dir), "--port", port) as view,
     ):
@@ -183,7 +192,9 @@ async def test_view_of_real_daemons_via_run_dir(tmp_path: Path) -> None:
         async with browser(f"http://127.0.0.1:{port}/") as page:
             seen = await page.wait_state(both_moved(1.0))
         _, _, body = await asyncio.to_thread(get, f"http://127.0.0.1:{port}/api/snapshot")
-        assert up.returncode is None or up.returncode == 0
+        assert up.returncode is None or up.returncode == 0, (tmp_path / "up.log").read_text()[
+            -2000:
+        ]
     snap = json.loads(body)
     # the run's signed truth verified with the run's root key; nothing refused
     assert snap["run"]["mode"] == "rsu" and snap["map"]["name"] == "paper-blind-intersection"
