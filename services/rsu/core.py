@@ -74,6 +74,17 @@ the same step. On the demand experiment's straight flows it helped (400 veh/h, s
 that starts from rest costs more than the wait it saves once turning bodies occupy
 the zone longer.
 
+Tried and dropped (4 Dec): two committed cars that neither can keep out of the zone, even
+braking hard, are ordered by mode today (whoever conflicts with a ``C_SLOW`` path yields),
+so a ``C_FAST`` car 0.4 m from the zone yielded to a ``C_SLOW`` one 0.5 m from it and stood
+10 s with its nose in the zone (demand experiment, slot, 600 veh/h, seed 0); and a stop
+that cannot stay out even braking hard eases off to a comfortable one (no limit from
+``stop_limit``), deeper into the crossing. Letting the later to reach the zone yield, and
+braking such a stop hard all the same, each fixed its case, but each alone also led
+rsu/paper at 600 veh/h, seed 0, into a box gridlock (8 cars never through): a car
+stopped 0.7 m into the zone and a crossing car stopped by its own sensors in front of it,
+each waiting for the other. Both need a way out of that gridlock first.
+
 Status: the property holds for both policies, the case random search once found under
 ``paper`` included (``FOUND_BY_SEARCH`` in the test: the follow rule's lane was measured
 across the asking car's heading only).
