@@ -471,7 +471,9 @@ class VelocityManager:
         of the zone (its front ``stop_gap_m`` before it, or as far before it as the brakes
         allow, :meth:`front_reach`) when braking
         at up to ``factor`` times its comfortable deceleration does it (a comfortable
-        stop in the zone blocks the crossing it was stopped for); to its
+        stop in the zone blocks the crossing it was stopped for), and where braking at
+        ``FIRM_STOP_FACTOR`` stops it when even that cannot (out of the zone if the brakes
+        allow, else into it as little as they can); to its
         autonomous path's own end when that ends at rest (its planner stops there, e.g.
         behind a car it senses), and to a follow distance behind where every car ahead
         of it in its lane (in the table) ends its path; ``inf`` for no limit."""
@@ -485,6 +487,13 @@ class VelocityManager:
                 # 3 cm past the gap's reach was stopped comfortably in the middle of the
                 # crossing; demand experiment, paper, 400 veh/h, seed 0, final stop on)
                 limit = min(limit, max(reach - self.config.stop_gap_m, hard))
+            else:
+                # not even so: as short as the emergency brakes allow, not a comfortable
+                # stop through the crossing it yields to (random search of the invariant,
+                # paper: a C_FAST car 21 m from the zone at 13.9 m/s, told to yield to a
+                # turning car that could not stop, got a comfortable stop 48 m long through
+                # the turner's path; braking at 5 m/s^2 it stops 1.7 m before the zone)
+                limit = min(limit, tr.v0 * tr.v0 / (2.0 * FIRM_STOP_FACTOR * tr.decel))
         if tr.xy.shape[0] < 2:
             return limit
         box = _box(tr.xy)

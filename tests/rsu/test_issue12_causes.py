@@ -435,7 +435,9 @@ def test_cause9_a_stop_that_can_stay_out_of_the_zone_does(v: float, slack: float
     """B northbound at ``v``, its front ``slack`` x its hard braking distance (at
     ``HARD_STOP_FACTOR`` x comfortable) plus ``slack`` [m] from the zone. Its paper stop
     keeps the front out of the zone whenever hard braking can, the whole stop gap short
-    when that fits; comfortable otherwise, as the paper's."""
+    when that fits; otherwise it brakes at ``FIRM_STOP_FACTOR`` all the same, out of the
+    zone or into it as little as it can (a comfortable stop would run through the
+    crossing it yields to); comfortable, as the paper's, once its front is in the zone."""
     cfg = config()
     hard = v * v / (2.0 * velocity.HARD_STOP_FACTOR * cfg.decel_comfort_mps2)
     front_gap = hard + slack
@@ -454,9 +456,15 @@ def test_cause9_a_stop_that_can_stay_out_of_the_zone_does(v: float, slack: float
         if front_gap - cfg.stop_gap_m >= hard + 1e-6:
             assert stop_y + 2.25 <= -3.5 - cfg.stop_gap_m + 1e-6
     elif slack <= -1e-6:
-        assert not plan.short
-        comfortable = v * v / (2.0 * cfg.decel_comfort_mps2)
-        assert math.isclose(stop_y - y0, comfortable, abs_tol=0.05)
+        if front_gap > 1e-6:  # braking at the firm factor, as short as it can
+            firm = v * v / (2.0 * velocity.FIRM_STOP_FACTOR * cfg.decel_comfort_mps2)
+            assert math.isclose(stop_y - y0, firm, abs_tol=0.05)
+            if abs(firm - front_gap) > 0.1:  # short when that braking keeps it out
+                assert plan.short == (firm < front_gap)
+        else:  # its front is in the zone already: the paper's comfortable stop
+            assert not plan.short
+            comfortable = v * v / (2.0 * cfg.decel_comfort_mps2)
+            assert math.isclose(stop_y - y0, comfortable, abs_tol=0.05)
 
 
 def _committed_pair(a_gap: float, a_v: float, b_gap: float, b_v: float) -> RsuCore:
