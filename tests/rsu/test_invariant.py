@@ -268,7 +268,7 @@ FOUND_BY_SEARCH = [
 ]
 
 
-# Found by random search (4 Dec, 40 examples of up to 7 cars per policy): under paper, a
+# Found by random search (4 Dec, 40 examples of up to 7 cars under paper): under paper, a
 # straight car from the north (c0, C_FAST, 13.9 m/s, front 21 m from the zone) and a left
 # turn from the south (c2, C_FAST, 5.6 m/s, 2.6 m from it) came to conflict within
 # T_collision; neither could stop short braking hard, so c0, the later arriver, yielded,
