@@ -48,10 +48,17 @@ policies, cars following their coordinated paths exactly) and cause by cause in
 3. No car is told ``C_FAST`` on a path that was not checked: the plan that is sent
    (not the car's own path) is checked against the table over ``T_free`` with the
    release margins, and against the crossing order of committed cars.
-4. A car changes mode a bounded number of times per crossing: the first
-   ``FREE_MODE_CHANGES`` freely, then promotions and releases at most every
-   ``MODE_DWELL_S``, after ``MAX_MODE_CHANGES`` every ``LATE_DWELL_S``; a ``C_SLOW``
-   car is released only when its own path is clear over ``T_free`` by the margins.
+4. A car changes mode at a bounded rate: the first ``FREE_MODE_CHANGES`` freely, then
+   promotions and releases at most every ``MODE_DWELL_S``, after ``MAX_MODE_CHANGES``
+   every ``LATE_DWELL_S``; a ``C_SLOW`` car is released only when its own path is clear
+   over ``T_free`` by the margins, and an ``AUTO`` car held back from promotion by the
+   dwell alone, still beyond ``T_collision`` and with its own path clear, drives that
+   path rather than being slowed for the wait (it was: C_SLOW -> AUTO -> C_SLOW every
+   3-4 s). A rate, not a count: the property test's cars, which all start where they
+   can stop, stay within ``MAX_MODE_CHANGES + 2``, but a car that waits a minute in a
+   queue under heavy demand is promoted and demoted again by the cars crossing before
+   it (``four-way-flows`` seed 0: up to 16 changes, the demand experiment at 600 veh/h:
+   up to 20; see the README, "Delay against demand").
 5. No car waits forever while its way is free: a ``C_SLOW`` car whose path is clear
    and which is approaching is promoted (dwell permitting).
 6. Bodies in the zone keep a crossing order (``_zone_taken``, ``_order_clash``): a car
@@ -99,8 +106,23 @@ Limits, stated: a car that can no longer stop before the zone (committed) keeps 
 way, so a conflict between two committed cars cannot be undone by the RSU, only
 prevented; the property test starts every car where it can still stop. The one
 exception: of two committed cars, one that can still keep its body out of the zone
-braking at ``HARD_STOP_FACTOR`` times its comfortable deceleration yields to one that
-cannot (``_stops_short``, ``tests/rsu/test_issue12_causes.py`` cause 9).
+braking at ``HARD_STOP_FACTOR`` times its comfortable deceleration, after
+``REACTION_S`` at its speed (the command's way and the actuator's lag), yields to one
+that cannot (``_stops_short``, ``tests/rsu/test_issue12_causes.py`` cause 9). A slot
+takes a ``C_SLOW`` car into the zone as a ``C_FAST`` path does: of two cars neither of
+which can keep out, the later arriver yields, slot or not (cause 9). A ``C_FAST`` car
+whose new plan jumped earlier (the car ahead it was retimed behind has gone) and would
+make it yield keeps the path it drives while that is still clear
+(``_keeps_reservation``, cause 10): the earlier plan used to meet a crossing car
+promoted into the gap, both committed, and lock the box.
+
+Found 5 Dec by the demand experiment at 600 veh/h (rsu/slot) and fixed as above: seed 4,
+a collision (a hard stop that fitted the gap exactly carried a car's nose 1 m into the
+zone through its 0.3 s actuator lag, and a crossing car, no longer able to stop, yielded
+to it by the mode rule and hit it); seed 1, the box lock. A car standing with only its
+nose over the zone's edge now counts as a body in the zone (``_body_in_zone``): its
+centre is outside, and its centre 3 m from a crossing car's is beyond the point rule's
+2.8 m.
 
 Several RSUs (issue 12): each RSU coordinates a car only while it approaches that
 RSU's zone (in coverage, its path entering the zone within ``T_free``) and terminates it
@@ -159,7 +181,7 @@ from services.rsu.reservation import (
     path_headings,
     within_wire_bounds,
 )
-from services.rsu.velocity import HARD_STOP_FACTOR, SpeedPlan, VelocityManager
+from services.rsu.velocity import HARD_STOP_FACTOR, REACTION_S, SpeedPlan, VelocityManager
 
 __all__ = ["Outgoing", "Policy", "RsuConfig", "RsuCore", "path_problem"]
 
@@ -190,6 +212,15 @@ tries, rather than flip its mode every half second (it still gets through: a car
 way is free is never held forever)."""
 LATE_DWELL_S = 3.0
 """Dwell between promotions and releases after ``MAX_MODE_CHANGES`` [s]."""
+
+KEEP_TRACK_M = 2.0
+"""A ``C_FAST`` car keeps its last coordinated path (``RsuCore._keeps_reservation``) only
+while it stands within this [m] of where that path puts it now: it drives that path."""
+
+_SLOT_KINDS = frozenset({"slot"})
+"""Coordinated paths (``SpeedPlan.kind``) that take a ``C_SLOW`` car into the zone."""
+_STOP_KINDS = frozenset({"stop", "slot_fallback"})
+"""Coordinated paths (``SpeedPlan.kind``) that stop a ``C_SLOW`` car."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -231,6 +262,9 @@ class _Car:
     changed_at: float = -math.inf  # when the last one was [s]
     held_short: bool = False  # its last coordinated path stops it short of the zone
     sent: ChangeRule | None = None  # under cp_rule: the last coordinated path sent it
+    kind: str = ""  # how its last coordinated path was made (SpeedPlan.kind)
+    last_cp: CoordinatedPath | None = None  # the last coordinated path sent it
+    stop_since: float = -math.inf  # when it was first told the stop it is told now [s]
 
     def observe(self, path: VehiclePath) -> None:
         if path.header.time_us >= self.state_us:
@@ -243,6 +277,14 @@ class _Car:
     def shape(self) -> tuple[float, float]:
         """Length, width [m]: what its conflict margin grows with."""
         return self.length, self.width
+
+
+def _thinned(points: FloatArray, cap: int) -> npt.NDArray[np.int64]:
+    """Indices of ``cap`` points spread evenly over ``points``, first and last kept."""
+    idx: npt.NDArray[np.int64] = np.unique(
+        np.round(np.linspace(0, points.shape[0] - 1, cap)).astype(np.int64)
+    )
+    return idx
 
 
 def path_problem(path: VehiclePath) -> str | None:
@@ -293,7 +335,9 @@ class RsuCore:
         self._margins = (config.release_margin_m, config.release_margin_s)
         # zone occupancy of each table entry, by the entry's points object (an entry's
         # points are replaced, never changed): the crossing order checks every entry
-        self._occupancies: dict[str, tuple[FloatArray, float, tuple[float, float] | None]] = {}
+        self._occupancies: dict[
+            str, tuple[FloatArray, tuple[float, bool], tuple[float, float] | None]
+        ] = {}
 
     # -- queries --------------------------------------------------------------------------
 
@@ -542,33 +586,51 @@ class RsuCore:
         )
         return not found
 
-    def _entry_occupancy(
-        self, vehicle: str, points: FloatArray, length: float
-    ) -> tuple[float, float] | None:
-        """:meth:`_occupancy` of a table entry, computed once per entry."""
-        hit = self._occupancies.get(vehicle)
-        if hit is not None and hit[0] is points and hit[1] == length:
+    def _entry_occupancy(self, car: _Car, points: FloatArray) -> tuple[float, float] | None:
+        """:meth:`_occupancy` of a table entry, computed once per entry (and nose)."""
+        nose = self._nose_in_zone(car)
+        hit = self._occupancies.get(car.vehicle)
+        if hit is not None and hit[0] is points and hit[1] == (car.length, nose):
             return hit[2]
-        occupancy = self._occupancy(points, length)
-        self._occupancies[vehicle] = (points, length, occupancy)
+        occupancy = self._occupancy(points, car)
+        self._occupancies[car.vehicle] = (points, (car.length, nose), occupancy)
         return occupancy
 
-    def _occupancy(self, points: FloatArray, length: float) -> tuple[float, float] | None:
-        """When the car's body overlaps the conflict zone on this path: (first, last) [s].
+    def _nose_in_zone(self, car: _Car) -> bool:
+        """The front of ``car``'s body, as it stands now, is in the zone."""
+        half = 0.5 * car.length
+        return self._zone.contains_point(
+            car.x + half * math.cos(car.heading), car.y + half * math.sin(car.heading)
+        )
 
-        The body overlaps while its centre is within half a length of the stretch of the
-        path inside the zone (sampled points: an approximation by a point spacing).
-        None when the path does not reach the zone.
-        """
+    def _body_in_zone(self, points: FloatArray, car: _Car) -> npt.NDArray[np.bool_] | None:
+        """Which points of ``points`` (``car``'s path) hold its body in the zone: its centre
+        within half a length of the stretch of the path inside the zone (sampled points:
+        an approximation by a point spacing), or, for a path that never takes the centre
+        in, within half a length of where the car is while its nose is in the zone now (a
+        car held with its nose over the edge blocks the crossing; neither the centre
+        rule nor the point rule's 2.8 m sees it). None when the body never reaches it."""
         if points.shape[0] == 0:
             return None
-        inside = self._zone.contains(points[:, :2])
-        idx = np.flatnonzero(inside)
-        if idx.size == 0:
-            return None
+        inside = np.flatnonzero(self._zone.contains(points[:, :2]))
         s = paths.arc_length(points)
-        half = 0.5 * length
-        body = (s >= s[idx[0]] - half) & (s <= s[idx[-1]] + half)
+        half = 0.5 * car.length
+        if inside.size == 0:
+            if not self._nose_in_zone(car):
+                return None
+            xy = points[:, :2]
+            here = int(np.argmin(np.hypot(xy[:, 0] - car.x, xy[:, 1] - car.y)))
+            near: npt.NDArray[np.bool_] = np.abs(s - s[here]) <= half
+            return near
+        body: npt.NDArray[np.bool_] = (s >= s[inside[0]] - half) & (s <= s[inside[-1]] + half)
+        return body
+
+    def _occupancy(self, points: FloatArray, car: _Car) -> tuple[float, float] | None:
+        """When ``car``'s body overlaps the conflict zone on this path: (first, last) [s]
+        (:meth:`_body_in_zone`); None when it does not."""
+        body = self._body_in_zone(points, car)
+        if body is None:
+            return None
         times = points[body, 2]
         return float(times.min()), float(times.max())
 
@@ -590,8 +652,8 @@ class RsuCore:
     def _stops_short(self, car: _Car, points: FloatArray | None = None) -> bool:
         """The car can still keep its body out of the zone: a ``C_SLOW`` car whose stop
         does (``held_short``), or one whose front can stop before the zone braking at
-        ``HARD_STOP_FACTOR`` times its comfortable deceleration (as a stop would,
-        ``VelocityManager.stop_limit``)."""
+        ``HARD_STOP_FACTOR`` times its comfortable deceleration after ``REACTION_S`` at its
+        speed (as a stop would, ``VelocityManager.stop_limit``)."""
         gap = None if car.mode == Mode.C_SLOW else self._front_gap(car, points)
         return self._short_at(car, gap)
 
@@ -601,7 +663,8 @@ class RsuCore:
             return car.held_short
         if gap is None:
             return True
-        return car.speed * car.speed <= 2.0 * HARD_STOP_FACTOR * self._decel(car) * gap
+        room = gap - car.speed * REACTION_S  # it drives on this long before it brakes
+        return car.speed * car.speed <= 2.0 * HARD_STOP_FACTOR * self._decel(car) * room
 
     def _front_gap(self, car: _Car, points: FloatArray | None = None) -> float | None:
         """How far the car's front is from the zone along ``points`` (default: its table
@@ -639,14 +702,11 @@ class RsuCore:
 
     def _swept(self, points: FloatArray, car: _Car) -> FloatArray:
         """Footprints (M, 4, 2) of ``car``'s body along ``points`` while it overlaps the
-        zone (as :meth:`_occupancy` finds it), each side grown by ``BODY_CLEARANCE_M``;
-        (0, 4, 2) when the path does not reach the zone."""
-        inside = np.flatnonzero(self._zone.contains(points[:, :2]))
-        if inside.size == 0:
+        zone (:meth:`_body_in_zone`), each side grown by ``BODY_CLEARANCE_M``;
+        (0, 4, 2) when it does not."""
+        body = self._body_in_zone(points, car)
+        if body is None:
             return np.empty((0, 4, 2))
-        s = paths.arc_length(points)
-        half = 0.5 * car.length
-        body = (s >= s[inside[0]] - half) & (s <= s[inside[-1]] + half)
         pts = points[body]
         unit = path_headings(points)[body]
         heading = np.where(np.isnan(unit[:, 0]), car.heading, np.arctan2(unit[:, 1], unit[:, 0]))
@@ -684,7 +744,7 @@ class RsuCore:
         whose bodies cross or merge with this one's in the zone (:meth:`_bodies_meet`:
         opposing traffic and followers pass), else any body in the zone.
         """
-        mine = self._occupancy(points, car.length)
+        mine = self._occupancy(points, car)
         if mine is None:
             return None
         swept: FloatArray | None = None
@@ -694,7 +754,7 @@ class RsuCore:
             entry = self.table.get(vehicle)
             if vehicle == car.vehicle or other is None or entry is None:
                 continue
-            theirs = self._entry_occupancy(vehicle, entry.points, other.length)
+            theirs = self._entry_occupancy(other, entry.points)
             if theirs is None or theirs[1] < now or (moving_only and other.mode == Mode.C_SLOW):
                 continue
             overlaps = mine[0] < theirs[1] + headway and theirs[0] < mine[1] + headway
@@ -789,18 +849,29 @@ class RsuCore:
                 return car_short
         fast, slow = Mode.C_FAST, Mode.C_SLOW
         if other.mode == slow:
+            if other.kind in _SLOT_KINDS and not self._short_at(car, car_gap):
+                # a slot enters the zone as a C_FAST path does: of two that can no longer
+                # keep out of it, the later arriver yields (demand experiment, slot,
+                # 600 veh/h, seed 4: a car that could not stop yielded to a slot that
+                # then took the zone after it)
+                return self._later_arriver(car, car_points, other)
             return True
         if car.mode == fast and other.mode == Mode.AUTO:
             return False
         if other.mode == fast and car.mode != fast:
             return True
         if car.mode == fast and other.mode == fast:
-            entry = self.table.get(other.vehicle)
-            zone = self._zone
-            mine = paths.zone_entry_time(car_points, zone)
-            theirs = math.inf if entry is None else paths.zone_entry_time(entry.points, zone)
-            return (mine, car.vehicle) > (theirs, other.vehicle)
+            return self._later_arriver(car, car_points, other)
         return True  # neither committed: the path already in the table keeps its way
+
+    def _later_arriver(self, car: _Car, car_points: FloatArray, other: _Car) -> bool:
+        """``car`` (on ``car_points``) enters the zone after ``other`` (on its table entry);
+        ties go by vehicle id."""
+        entry = self.table.get(other.vehicle)
+        zone = self._zone
+        mine = paths.zone_entry_time(car_points, zone)
+        theirs = math.inf if entry is None else paths.zone_entry_time(entry.points, zone)
+        return (mine, car.vehicle) > (theirs, other.vehicle)
 
     def _ahead_in_lane(self, lead: _Car, car: _Car, car_points: FloatArray) -> bool:
         """``lead`` is ahead of ``car`` in its lane: it stands on ``car``'s path (within
@@ -878,16 +949,31 @@ class RsuCore:
                 if other is not None and self._yields(car, query, other):
                     yields = True
                     break
+            if yields and plan is not None:
+                kept = self._keeps_reservation(now, car, plan)
+                if kept is not None:
+                    return [kept]
             if yields:
                 event = RsuEvent.CONFLICT
             elif car.mode == Mode.C_FAST:
                 event = RsuEvent.NO_CONFLICT  # it keeps its way; the others yield below
             elif not found and self._approaching(car, path, now) and self._clear(car, query, now):
                 event = RsuEvent.FREE_APPROACHING
-                plan = self._fast_plan(now, car, path) if self._may_change(car, now) else None
+                may = self._may_change(car, now)
+                plan = self._fast_plan(now, car, path) if may else None
                 if plan is None:
-                    # it waits its turn: a C_SLOW car stays (new path), an AUTO car slows
-                    event = RsuEvent.CONFLICT
+                    # it waits its turn: a C_SLOW car stays (new path), an AUTO car slows,
+                    # except an AUTO car held only by the dwell while still beyond
+                    # T_collision: its own path is clear over T_free, so it drives it
+                    # (slowing it for the dwell alone made a queued follower cycle
+                    # C_SLOW -> AUTO -> C_SLOW every 3-4 s; four-way-flows, seed 0)
+                    entry = paths.zone_entry_time(path.points, self._zone)
+                    far = entry > now + cfg.t_collision_s
+                    held = not may and far and car.mode == Mode.AUTO
+                    if held and not self._zone_taken(car, query, now):
+                        event = RsuEvent.NO_CONFLICT
+                    else:
+                        event = RsuEvent.CONFLICT
             elif car.mode == Mode.C_SLOW and (found or not self._may_change(car, now)):
                 # stays C_SLOW (a new path): released only when its own path is clear
                 # over T_free by the margins (hysteresis: T_collision to slow it, T_free
@@ -902,6 +988,44 @@ class RsuCore:
             reuse = near if plan is not None and event != RsuEvent.CONFLICT else None
             out.extend(self._give_way_to(now, car, reuse))
         return out
+
+    def _keeps_reservation(self, now: float, car: _Car, plan: SpeedPlan) -> Outgoing | None:
+        """A ``C_FAST`` car whose new plan would make it yield keeps the coordinated path
+        it was last sent (resent, as its table entry) when the new plan only jumped
+        earlier than that path (the car ahead it was retimed behind has gone) and that
+        path still covers ``T_collision`` clear of the table over ``T_free`` and of the
+        crossing order. Without this, the earlier plan met a crossing car promoted into
+        the gap the old one left, both committed, and the box locked (demand experiment,
+        slot, 600 veh/h, seed 1). A car that is not where that path puts it now
+        (``KEEP_TRACK_M``) does not drive it and keeps nothing. None when it does not
+        keep it."""
+        cfg = self.config
+        last, entry = car.last_cp, self.table.get(car.vehicle)
+        if last is None or entry is None or entry.points is not last.points:
+            return None
+        if last.mode != car.mode:
+            return None
+        pts = last.points
+        if float(pts[-1, 2]) < now + cfg.t_collision_s:
+            return None
+        t = pts[:, 2]
+        if not float(t[0]) <= now:
+            return None
+        where = float(np.interp(now, t, pts[:, 0])), float(np.interp(now, t, pts[:, 1]))
+        if math.hypot(where[0] - car.x, where[1] - car.y) > KEEP_TRACK_M:
+            return None  # it is not where that path puts it now: it does not drive it
+        old_entry = paths.zone_entry_time(pts, self._zone)
+        new_entry = paths.zone_entry_time(plan.points, self._zone)
+        if not (now < old_entry < math.inf and new_entry < old_entry - cfg.headway_s):
+            return None  # not a crossing whose plan jumped earlier
+        if self.table.conflicts(car.vehicle, pts, now, cfg.t_free_s, (), shape=car.shape):
+            return None
+        if self._order_clash(car, pts, now, crossing_only=True) is not None:
+            return None
+        self.table.touch(car.vehicle, now)
+        self.counters["reservation_kept"] += 1
+        message = CoordinatedPath(self._header(now), car.vehicle, car.mode, pts, last.speeds)
+        return Outgoing(car.vehicle, message)
 
     def _apply(
         self, now: float, car: _Car, event: RsuEvent, path: VehiclePath, plan: SpeedPlan | None
@@ -1018,24 +1142,40 @@ class RsuCore:
                 )
                 return clash is None
 
+            # a stop is news to a car not already told to stop: it reacts (REACTION_S)
+            stopping = car.mode == Mode.C_SLOW and car.kind in _STOP_KINDS
+            reaction = REACTION_S - (now - car.stop_since) if stopping else REACTION_S
             plan = self.velocity.plan(
-                car.vehicle, path, car.mode, now, self.table, firm=firm, admissible=in_order
+                car.vehicle,
+                path,
+                car.mode,
+                now,
+                self.table,
+                firm=firm,
+                reaction_s=reaction,
+                admissible=in_order,
             )
-        points, speeds = plan.points, plan.speeds
+        points, speeds, reserved = plan.points, plan.speeds, plan.reserved
         cap = self.config.max_points
         if cap is not None and points.shape[0] > cap:
             # evenly thinned, first and last kept: same path, fewer points (fits a datagram)
-            keep = np.unique(np.round(np.linspace(0, points.shape[0] - 1, cap)).astype(np.int64))
+            keep = _thinned(points, cap)
             points, speeds = points[keep], speeds[keep]
             self.counters["thinned_paths"] += 1
-        if self.config.cp_change_m is not None:
-            points = np.array(points, dtype=np.float64)
-            points.flags.writeable = False  # shared by the table and the rule (identity)
-            if self._unchanged(now, car, points):
-                return None
+        if cap is not None and reserved is not None and reserved.shape[0] > cap:
+            reserved = reserved[_thinned(reserved, cap)]
+        points = np.array(points, dtype=np.float64)
+        points.flags.writeable = False  # shared by the table, the message and the rule
+        if self.config.cp_change_m is not None and self._unchanged(now, car, points):
+            return None
         car.held_short = plan.short
-        self._reserve(now, car, points)
+        if plan.kind in _STOP_KINDS and not (car.kind in _STOP_KINDS and car.mode == Mode.C_SLOW):
+            car.stop_since = now
+        car.kind = plan.kind
+        # where it will be (SpeedPlan.reserved), if further on than where it is told to stop
+        self._reserve(now, car, points if reserved is None else reserved)
         self.counters["coordinated_paths"] += 1
         self.counters[f"plan_{plan.kind}"] += 1
         message = CoordinatedPath(self._header(now), car.vehicle, car.mode, points, speeds)
+        car.last_cp = message
         return Outgoing(car.vehicle, message)

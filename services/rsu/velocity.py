@@ -65,7 +65,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Collection
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -98,6 +98,12 @@ times the comfortable deceleration (5 m/s² by default, the emergency limit): re
 every 0.1 s from a speed a little above its plan's (actuator lag, rounding), a stop at
 exactly the hard limit would otherwise slide into the zone (found by the invariant's
 property test)."""
+REACTION_S = 0.4
+"""A car told to stop keeps its speed this long before its brakes bite [s] (the command's
+way to it and its actuator lag, ``vehicle_params.actuator_lag_s`` = 0.3 s): a stop is
+short of the zone only when it is with this much travel at the current speed added.
+Found by the demand experiment, slot, 600 veh/h, seed 4: a hard stop that fitted the
+gap exactly carried the car's nose 1 m into the zone, where a crossing car hit it."""
 _STOP_SLACK_M = 0.5  # a stop behind a car ahead keeps this more than the follow distance
 _VC_GRID = 24
 _VC_ROUNDS = 3
@@ -120,6 +126,12 @@ class SpeedPlan:
     short: bool = False
     """A stop whose body stays out of the zone: its front ``stop_gap_m`` before it, or
     closer when the brakes no longer allow the whole gap."""
+    reserved: FloatArray | None = None
+    """Points (M, 3) to reserve instead of ``points``: where the car will be, when that is
+    further on than where it is told to stop (a stop that cannot stay out of the zone,
+    ``REACTION_S``; found by the demand experiment, slot, 400 veh/h, seed 3: a stop
+    reserved 0.7 m short of the zone ended in it, and a crossing car, planned through
+    the empty zone, hit it)."""
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -315,14 +327,17 @@ class VelocityManager:
         exclude: Collection[str] = (),
         *,
         firm: bool = False,
+        reaction_s: float = REACTION_S,
         admissible: Callable[[FloatArray], bool] | None = None,
     ) -> SpeedPlan:
         """Coordinated path body for ``vehicle`` in ``mode`` from its autonomous ``path``,
         with the limits the path declares (else the configuration's). ``firm``: the car
         was last told to stop short of the zone (``SpeedPlan.short``), and keeps that
-        stop braking up to ``FIRM_STOP_FACTOR``. ``admissible``: a further test a slot
-        path (points (M, 3)) must pass besides the table's, e.g. the RSU's crossing
-        order of committed cars."""
+        stop braking up to ``FIRM_STOP_FACTOR``. ``reaction_s`` [s]: how long the car still
+        drives on before its brakes bite if told to stop (``stop_limit``): ``REACTION_S``
+        for a stop that is news to it, less for one it was told ``REACTION_S`` ago.
+        ``admissible``: a further test a slot path (points (M, 3)) must pass besides the
+        table's, e.g. the RSU's crossing order of committed cars."""
         cfg = self.config
         track = _track(path, self.limits_of(path), now, cfg.t_free_s)
         if mode == Mode.C_FAST:
@@ -335,8 +350,17 @@ class VelocityManager:
                     return slot
                 kind = "slot_fallback"
             factor = FIRM_STOP_FACTOR if firm else HARD_STOP_FACTOR
-            limit = self.stop_limit(vehicle, track, now, table, exclude, factor)
-            return self._stop(track, kind, limit)
+            lag = track.v0 * max(reaction_s, 0.0)
+            limit = self.stop_limit(vehicle, track, now, table, exclude, factor, lag)
+            stop = self._stop(track, kind, limit, lag)
+            if lag > 0.0 and not stop.short:
+                # told to stop as short as it can, it still drives on ``lag`` before its
+                # brakes bite: reserve where it will stand, not where it is told to
+                late = self.stop_limit(vehicle, track, now, table, exclude, factor, lag, lag)
+                if late > limit + _SAME_POINT_M:
+                    reserved = self._stop(track, kind, late, lag).points
+                    return replace(stop, reserved=reserved)
+            return stop
         raise ValueError(f"no coordinated path for mode {mode!r}")
 
     def front_reach(self, tr: _Track) -> float | None:
@@ -466,6 +490,8 @@ class VelocityManager:
         table: ReservationTable,
         exclude: Collection[str] = (),
         factor: float = HARD_STOP_FACTOR,
+        lag: float = 0.0,
+        overrun: float = 0.0,
     ) -> float:
         """How far along its path [m] a stopping car may go (issue 12, cause 5): short
         of the zone (its front ``stop_gap_m`` before it, or as far before it as the brakes
@@ -476,24 +502,31 @@ class VelocityManager:
         allow, else into it as little as they can); to its
         autonomous path's own end when that ends at rest (its planner stops there, e.g.
         behind a car it senses), and to a follow distance behind where every car ahead
-        of it in its lane (in the table) ends its path; ``inf`` for no limit."""
+        of it in its lane (in the table) ends its path; ``inf`` for no limit. ``lag`` [m]:
+        how far the car drives on before it brakes (``REACTION_S`` at its speed, for a stop
+        that is news to it): a stop short of the zone is one with that travel added.
+        ``overrun`` [m]: how much further a stop that cannot stay out of the zone goes
+        (``lag`` for where the car will stand, :meth:`plan`)."""
         limit = float(tr.s[-1]) if tr.v_ap[-1] <= 0.0 else math.inf
         reach = self.front_reach(tr)
         if reach is not None:
             hard = tr.v0 * tr.v0 / (2.0 * factor * tr.decel)
-            if hard <= reach:
+            if hard <= reach - lag:
                 # short of the zone, braking up to factor x comfortably: the whole stop gap
                 # short when that fits, else as short as the brakes allow (no cliff: a car
                 # 3 cm past the gap's reach was stopped comfortably in the middle of the
                 # crossing; demand experiment, paper, 400 veh/h, seed 0, final stop on)
-                limit = min(limit, max(reach - self.config.stop_gap_m, hard))
+                # (the plan's stop point ``lag`` short of the reach: the car drives on
+                # that far before braking)
+                limit = min(limit, max(reach - max(self.config.stop_gap_m, lag), hard))
             else:
                 # not even so: as short as the emergency brakes allow, not a comfortable
                 # stop through the crossing it yields to (random search of the invariant,
                 # paper: a C_FAST car 21 m from the zone at 13.9 m/s, told to yield to a
                 # turning car that could not stop, got a comfortable stop 48 m long through
                 # the turner's path; braking at 5 m/s^2 it stops 1.7 m before the zone)
-                limit = min(limit, tr.v0 * tr.v0 / (2.0 * FIRM_STOP_FACTOR * tr.decel))
+                firm = tr.v0 * tr.v0 / (2.0 * FIRM_STOP_FACTOR * tr.decel)
+                limit = min(limit, firm + overrun)
         if tr.xy.shape[0] < 2:
             return limit
         box = _box(tr.xy)
@@ -530,7 +563,9 @@ class VelocityManager:
             limit = min(limit, last[0] - gap)
         return limit
 
-    def _stop(self, tr: _Track, kind: str = "stop", limit: float = math.inf) -> SpeedPlan:
+    def _stop(
+        self, tr: _Track, kind: str = "stop", limit: float = math.inf, lag: float = 0.0
+    ) -> SpeedPlan:
         """Brake comfortably from the current speed to the exact stop point, then hold;
         harder when the stop must come sooner, at ``limit`` [m along the path] (a car
         ahead, or the autonomous path's own stop)."""
@@ -558,7 +593,7 @@ class VelocityManager:
         hold = _holds(float(xy[-1, 0]), float(xy[-1, 1]), float(t[-1]), tr.t_end, cfg.hold_step_s)
         pts = np.vstack([pts, hold])
         reach = self.front_reach(tr)
-        short = reach is not None and s_stop <= reach + 1e-6
+        short = reach is not None and s_stop + lag <= reach + 1e-6
         return SpeedPlan(pts, np.zeros(pts.shape[0]), kind, short=short)
 
     def _fast_caps(self, tr: _Track) -> tuple[FloatArray, int | None]:

@@ -11,6 +11,7 @@ import math
 from typing import TypeVar
 
 import numpy as np
+import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
@@ -29,6 +30,7 @@ from services.rsu import core as rsu_core
 from services.rsu import paths, velocity
 from services.rsu.config import RsuConfig
 from services.rsu.core import Outgoing, RsuCore
+from services.rsu.modes import RsuEvent
 from services.rsu.reservation import ReservationTable, follow_distance
 from services.rsu.velocity import VelocityManager
 from services.vehicle.future_path import future_path_points
@@ -243,6 +245,34 @@ def test_cause4_a_follower_does_not_flip_its_mode_every_step() -> None:
     assert all(g >= rsu_core.MODE_DWELL_S - 1e-9 for g in gaps), changes
 
 
+@pytest.mark.parametrize("dwell", [True, False])
+def test_cause4_an_auto_car_held_by_the_dwell_drives_its_own_clear_path(dwell: bool) -> None:
+    """B (AUTO, 3 m/s, its own path entering the zone beyond T_collision and clear over
+    T_free; its V_max plan is not, cause 2) has used its free mode changes. Within the
+    dwell after its last one it keeps driving its own path, AUTO, reserved as it is: it
+    used to be slowed into C_SLOW for the dwell alone, released when it stopped, judged
+    free again, and so round every 3-4 s (a queued follower, four-way-flows, seed 0).
+    Without the dwell, the paper's rule: it waits its turn in C_SLOW."""
+    cfg = config()
+    core = RsuCore(cfg, listen_s=0.3)
+    a = straight((CROSS[0] - 5.0 * VMAX, CROSS[1]), EAST, VMAX, 0.0)
+    core.on_message(0.0, message(FuturePath, "A", a, VMAX, EAST))
+    b = straight((CROSS[0], CROSS[1] - 30.0), NORTH, 3.0, 0.4)
+    assert paths.zone_entry_time(b, ZONE) > 0.4 + cfg.t_collision_s
+    assert core.table.naive_conflicts("B", b, 0.4, cfg.t_free_s) == []
+    changed_at = 0.2 if dwell else -math.inf
+    core._cars["B"] = rsu_core._Car("B", changes=rsu_core.FREE_MODE_CHANGES, changed_at=changed_at)
+    out = core.on_message(0.4, message(FuturePath, "B", b, 3.0, NORTH))
+    if dwell:
+        assert core.mode_of("B") == Mode.AUTO and sent(out, "B") == []
+        entry = core.table.get("B")
+        assert entry is not None and np.array_equal(entry.points, b)
+    else:
+        assert core.mode_of("B") == Mode.C_SLOW
+        assert ("ModeCommand", Mode.C_SLOW) in sent(out, "B")
+    assert no_conflict_within(core, 0.4, cfg.t_collision_s) == []
+
+
 # -- cause 5: the paper's stop stops behind the car ahead -------------------------------------
 
 
@@ -320,6 +350,29 @@ def test_cause7_a_car_with_its_front_in_the_zone_is_committed() -> None:
     assert core._committed(car)
     car.x = -6.0  # front 0.75 m short of the zone: not committed at rest
     assert not core._committed(car)
+
+
+def test_cause7_a_body_with_only_its_nose_in_the_zone_takes_the_zone() -> None:
+    """B stands northbound with its nose 1 m over the zone's edge and its centre 3.25 m
+    outside (an overrun stop leaves it so: demand experiment, slot, 600 veh/h, seed 4).
+    A's path east through the crossing passes 3 m from B's centre, beyond the point
+    rule's 2.8 m, and its centre never enters the zone on its path: only the nose says
+    B is in the zone. Left alone, A would drive into it."""
+    cfg = config()
+    core = RsuCore(cfg, listen_s=0.0)
+    b_y = -3.5 + 1.0 - 2.25
+    car_b = rsu_core._Car("B", mode=Mode.C_SLOW, x=CROSS[0], y=b_y, heading=NORTH, speed=0.0)
+    core._cars["B"] = car_b
+    core.table.update("B", held(CROSS[0], b_y, 0.0), 0.0)
+    assert core._committed(car_b) and core._occupancy(held(CROSS[0], b_y, 0.0), car_b)
+    a = straight((-20.0, CROSS[1]), EAST, 6.0, 0.0)  # not committed: it can still stop
+    assert core.table.naive_conflicts("A", a, 0.0, cfg.t_free_s) == []  # the point rule
+    car_a = rsu_core._Car("A", x=-20.0, y=CROSS[1], heading=EAST, speed=6.0)
+    assert not core._committed(car_a, a) and core._zone_taken(car_a, a, 0.0)
+    # one lane over (westbound, y = +1.75) it passes: 4.25 m clear of B's nose
+    w = straight((20.0, -CROSS[1]), WEST, 6.0, 0.0)
+    car_w = rsu_core._Car("W", x=20.0, y=-CROSS[1], heading=WEST, speed=6.0)
+    assert not core._zone_taken(car_w, w, 0.0)
 
 
 def test_cause7_no_slot_through_a_body_standing_in_the_zone() -> None:
@@ -432,15 +485,17 @@ def _front_out_of_zone(plan_points: np.ndarray, heading: float) -> bool:
 @settings(max_examples=150, deadline=None)
 @given(v=st.floats(1.0, VMAX), slack=st.floats(-0.5, 1.0))
 def test_cause9_a_stop_that_can_stay_out_of_the_zone_does(v: float, slack: float) -> None:
-    """B northbound at ``v``, its front ``slack`` x its hard braking distance (at
-    ``HARD_STOP_FACTOR`` x comfortable) plus ``slack`` [m] from the zone. Its paper stop
-    keeps the front out of the zone whenever hard braking can, the whole stop gap short
+    """B northbound at ``v``, its front its hard braking distance (at ``HARD_STOP_FACTOR``
+    x comfortable) plus its travel in ``REACTION_S`` plus ``slack`` [m] from the zone.
+    Its paper stop keeps the front out of the zone whenever hard braking after the
+    reaction time can, the whole stop gap (or the reaction travel, if longer) short
     when that fits; otherwise it brakes at ``FIRM_STOP_FACTOR`` all the same, out of the
     zone or into it as little as it can (a comfortable stop would run through the
     crossing it yields to); comfortable, as the paper's, once its front is in the zone."""
     cfg = config()
     hard = v * v / (2.0 * velocity.HARD_STOP_FACTOR * cfg.decel_comfort_mps2)
-    front_gap = hard + slack
+    lag = v * velocity.REACTION_S
+    front_gap = hard + lag + slack
     y0 = -3.5 - front_gap - 2.25
     b = straight((CROSS[0], y0), NORTH, v, 0.0)
     plan = VelocityManager(cfg).plan(
@@ -453,14 +508,23 @@ def test_cause9_a_stop_that_can_stay_out_of_the_zone_does(v: float, slack: float
     stop_y = float(plan.points[-1, 1])
     if slack >= 1e-6:
         assert plan.short and _front_out_of_zone(plan.points, NORTH)
-        if front_gap - cfg.stop_gap_m >= hard + 1e-6:
-            assert stop_y + 2.25 <= -3.5 - cfg.stop_gap_m + 1e-6
+        short_by = max(cfg.stop_gap_m, lag)
+        if front_gap - short_by >= hard + 1e-6:
+            assert stop_y + 2.25 <= -3.5 - short_by + 1e-6
+        assert stop_y + 2.25 <= -3.5 - lag + 1e-6  # it stops in time, reaction and all
     elif slack <= -1e-6:
-        if front_gap > 1e-6:  # braking at the firm factor, as short as it can
+        if front_gap > 1e-6:  # braking at the firm factor, as short as it can (a
+            # comfortable stop, if that is shorter still: at a crawl)
             firm = v * v / (2.0 * velocity.FIRM_STOP_FACTOR * cfg.decel_comfort_mps2)
-            assert math.isclose(stop_y - y0, firm, abs_tol=0.05)
-            if abs(firm - front_gap) > 0.1:  # short when that braking keeps it out
-                assert plan.short == (firm < front_gap)
+            comfortable = v * v / (2.0 * cfg.decel_comfort_mps2)
+            stop = min(firm, comfortable)
+            assert math.isclose(stop_y - y0, stop, abs_tol=0.05)
+            if abs(stop + lag - front_gap) > 0.1:  # short when that braking keeps it out
+                assert plan.short == (stop + lag < front_gap)
+            late = min(stop + lag, comfortable)  # where it will stand, its reaction on
+            if not plan.short and late > stop + 0.05:  # reserved there
+                assert plan.reserved is not None
+                assert math.isclose(float(plan.reserved[-1, 1]) - y0, late, abs_tol=0.05)
         else:  # its front is in the zone already: the paper's comfortable stop
             assert not plan.short
             comfortable = v * v / (2.0 * cfg.decel_comfort_mps2)
@@ -504,11 +568,45 @@ def test_cause9_of_two_committed_cars_one_that_can_stay_out_yields(
         assert core._stops_short(a if a_yields else b)
 
 
+@pytest.mark.parametrize(
+    ("b_lead_s", "kind", "a_yields"),
+    [
+        (0.5, "slot", True),  # B's slot takes the zone first: A, the later arriver, yields
+        (-0.5, "slot", False),  # A is first: B's slot is the later arriver
+        (-0.5, "stop", True),  # a stop is all B can give: whoever meets it yields
+    ],
+)
+def test_cause9_a_slot_is_the_later_arriver_as_a_c_fast_path_is(
+    b_lead_s: float, kind: str, a_yields: bool
+) -> None:
+    """A (C_FAST, 13.9 m/s, 10 m from the zone: it cannot keep out of it) meets B (C_SLOW
+    on a path through the crossing). A slot enters the zone as a C_FAST path does, so of
+    the two the later arriver yields (demand experiment, slot, 600 veh/h, seed 4: a car
+    that could no longer stop gave way to a slot that reached the zone after it)."""
+    core = _committed_pair(10.0, VMAX, 20.0, VMAX)
+    a, b = core._cars["A"], core._cars["B"]
+    a_path = core.table.get("A").points  # type: ignore[union-attr]
+    a_entry = paths.zone_entry_time(a_path, ZONE)
+    b_entry = a_entry - b_lead_s
+    d = 3.5 + b_entry * VMAX  # B's centre enters the zone at b_entry
+    b.y = -d
+    core.table.update("B", straight((CROSS[0], -d), NORTH, VMAX, 0.0), 0.0)
+    b.mode, b.kind, b.held_short = Mode.C_SLOW, kind, False
+    assert not core._stops_short(a)
+    assert math.isclose(
+        paths.zone_entry_time(core.table.get("B").points, ZONE),  # type: ignore[union-attr]
+        b_entry,
+        abs_tol=0.1,
+    )
+    assert core._yields(a, a_path, b) == a_yields
+
+
 def test_cause9_a_committed_car_keeps_its_way_past_one_stopped_short() -> None:
-    """A (13.9 m/s, front 16 m from the zone: it cannot stop before it) arrives after B
-    (6 m/s, front 5 m from it: only a hard stop keeps it out). B is told to stop, out of
-    the zone, and A's next autonomous path keeps C_FAST."""
-    core = _committed_pair(16.0, VMAX, 5.0, 6.0)
+    """A (13.9 m/s, front 22 m from the zone: it cannot stop before it) arrives after B
+    (6 m/s, front 7 m from it: only a hard stop after the reaction time, 4.5 + 1.8 m,
+    keeps it out). B is told to stop, out of the zone, and A's next autonomous path keeps
+    C_FAST."""
+    core = _committed_pair(22.0, VMAX, 7.0, 6.0)
     a, b = core._cars["A"], core._cars["B"]
     assert core._committed(a) and core._committed(b)
     assert not core._stops_short(a) and core._stops_short(b)
@@ -526,3 +624,95 @@ def test_cause9_a_committed_car_keeps_its_way_past_one_stopped_short() -> None:
     core.on_message(0.1, message(AutonomousPath, "A", nxt, VMAX, EAST, Mode.C_FAST, 2), "rsu-1")
     assert core.mode_of("A") == Mode.C_FAST
     assert no_conflict_within(core, 0.1, config().t_collision_s) == []
+
+
+# -- cause 10: a plan that jumps earlier ---------------------------------------------------
+
+
+@pytest.mark.parametrize("off_path_m", [0.0, 5.0])
+def test_cause10_a_c_fast_car_whose_plan_jumped_earlier_keeps_its_path(
+    off_path_m: float,
+) -> None:
+    """A (C_FAST) was sent a path retimed behind a car ahead: it enters the zone at 7 s.
+    That car has gone; B (C_FAST) was promoted into the gap A's path left. A's next
+    autonomous path runs free: its new plan would reach the zone 0.3 s after B, so A,
+    the later arriver, would yield (demand experiment, slot, 600 veh/h, seed 1: there
+    both were committed by then, and the box locked). A keeps the path it drives,
+    resent, and B its way. A car that is not where its last path puts it (5 m off)
+    does not drive it and keeps nothing: it yields."""
+    cfg = config()
+    core = RsuCore(cfg, listen_s=0.0)
+    x0, v_old = -3.5 - 29.2, 29.2 / 7.0
+    old = straight((x0, CROSS[1]), EAST, v_old, 0.0)
+    old_cp = CoordinatedPath(Header("rsu-1", 1, 0), "A", Mode.C_FAST, old, np.full(120, v_old))
+    car_a = rsu_core._Car("A", mode=Mode.C_FAST, x=x0, y=CROSS[1], heading=EAST, speed=v_old)
+    car_a.last_cp = old_cp
+    core._cars["A"] = car_a
+    core.table.update("A", old_cp.points, 0.0)
+    assert core.table.get("A").points is old_cp.points  # type: ignore[union-attr]
+    here = x0 + off_path_m
+    free = message(
+        AutonomousPath, "A", straight((here, CROSS[1]), EAST, VMAX, 0.0), v_old, EAST, Mode.C_FAST
+    )
+    new = VelocityManager(cfg).plan("A", free, Mode.C_FAST, 0.0, core.table)
+    new_entry = paths.zone_entry_time(new.points, ZONE)
+    assert new_entry < paths.zone_entry_time(old, ZONE) - cfg.headway_s
+    d = 3.5 + (new_entry - 0.3) * VMAX  # B's centre enters the zone 0.3 s before A's plan
+    car_b = rsu_core._Car("B", mode=Mode.C_FAST, x=CROSS[0], y=-d, heading=NORTH, speed=VMAX)
+    car_b.autonomous = message(
+        AutonomousPath, "B", straight((CROSS[0], -d), NORTH, VMAX, 0.0), VMAX, NORTH
+    )
+    core._cars["B"] = car_b
+    core.table.update("B", straight((CROSS[0], -d), NORTH, VMAX, 0.0), 0.0)
+    assert core.table.naive_conflicts("A", old, 0.0, cfg.t_free_s) == []  # A's path was clear
+    car_a.x = here
+    free = message(
+        AutonomousPath, "A", straight((here, CROSS[1]), EAST, VMAX, 0.0), v_old, EAST, Mode.C_FAST
+    )
+    out = core.on_message(0.0, free, "rsu-1")
+    assert core.mode_of("B") == Mode.C_FAST
+    if off_path_m == 0.0:
+        assert core.mode_of("A") == Mode.C_FAST
+        (cp,) = [o.message for o in out if o.vehicle == "A"]
+        assert isinstance(cp, CoordinatedPath) and np.array_equal(cp.points, old)
+        assert core.counters["reservation_kept"] == 1
+    else:
+        assert core.mode_of("A") == Mode.C_SLOW
+        assert core.counters["reservation_kept"] == 0
+    assert no_conflict_within(core, 0.0, cfg.t_collision_s) == []
+
+
+@pytest.mark.parametrize("v", [11.0, 12.3, VMAX])
+def test_cause9_a_stop_is_reserved_where_the_car_will_stand_after_its_reaction(v: float) -> None:
+    """A (C_FAST at ``v``, front 12 m from the zone: it cannot keep out even braking at
+    the firm factor) is told to stop. Its reserved stop (what every other car is planned
+    around) runs on ``REACTION_S`` at ``v`` before the firm braking, and the re-plans of
+    the next 0.3 s, the car still at ``v`` (it has not reacted yet), keep that stop point:
+    the table shows where it will stand (demand experiment, slot, 400 veh/h, seed 3: a
+    stop reserved 0.7 m short of the zone ended in it, where a crossing car planned
+    through the empty zone hit it)."""
+    cfg = config()
+    core = RsuCore(cfg, listen_s=0.0)
+    x0 = -3.5 - 12.0 - 2.25
+    path = straight((x0, CROSS[1]), EAST, v, 0.0)
+    car = rsu_core._Car("A", mode=Mode.C_FAST, x=x0, y=CROSS[1], heading=EAST, speed=v)
+    car.autonomous = message(AutonomousPath, "A", path, v, EAST, Mode.C_FAST)
+    core._cars["A"] = car
+    core.table.update("A", path, 0.0)
+    core._apply(0.0, car, RsuEvent.CONFLICT, car.autonomous, None)
+    assert core.mode_of("A") == Mode.C_SLOW and not car.held_short
+    firm = v * v / (2.0 * velocity.FIRM_STOP_FACTOR * cfg.decel_comfort_mps2)
+    comfortable = v * v / (2.0 * cfg.decel_comfort_mps2)
+    expected = x0 + min(firm + v * velocity.REACTION_S, comfortable)
+    stops = [float(core.table.get("A").points[-1, 0])]  # type: ignore[union-attr]
+    assert math.isclose(stops[0], expected, abs_tol=0.05)
+    car.changes = rsu_core.MAX_MODE_CHANGES  # the dwell keeps it C_SLOW (nothing else does)
+    for k in (1, 2, 3):
+        now = 0.1 * k
+        car.x = x0 + v * now  # not braking yet
+        pts = straight((car.x, CROSS[1]), EAST, v, now)
+        core.on_message(
+            now, message(AutonomousPath, "A", pts, v, EAST, Mode.C_SLOW, k + 1), "rsu-1"
+        )
+        stops.append(float(core.table.get("A").points[-1, 0]))  # type: ignore[union-attr]
+    assert max(stops) - min(stops) <= 0.05, stops
