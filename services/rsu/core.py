@@ -118,7 +118,8 @@ promoted into the gap, both committed, and lock the box.
 
 Found 5 Dec by the demand experiment at 600 veh/h (rsu/slot) and fixed as above: seed 4,
 a collision (a hard stop that fitted the gap exactly carried a car's nose 1 m into the
-zone through its 0.3 s actuator lag, and a crossing car, no longer able to stop, yielded
+zone through its reaction (0.3 s actuator lag, up to 0.1 s until its next planning
+step), and a crossing car, no longer able to stop, yielded
 to it by the mode rule and hit it); seed 1, the box lock. A car standing with only its
 nose over the zone's edge now counts as a body in the zone (``_body_in_zone``): its
 centre is outside, and its centre 3 m from a crossing car's is beyond the point rule's
@@ -265,6 +266,11 @@ class _Car:
     kind: str = ""  # how its last coordinated path was made (SpeedPlan.kind)
     last_cp: CoordinatedPath | None = None  # the last coordinated path sent it
     stop_since: float = -math.inf  # when it was first told the stop it is told now [s]
+
+    @property
+    def stopping(self) -> bool:
+        """Its last coordinated path stops it (``C_SLOW`` on a stop, ``_STOP_KINDS``)."""
+        return self.mode == Mode.C_SLOW and self.kind in _STOP_KINDS
 
     def observe(self, path: VehiclePath) -> None:
         if path.header.time_us >= self.state_us:
@@ -613,11 +619,11 @@ class RsuCore:
         if points.shape[0] == 0:
             return None
         inside = np.flatnonzero(self._zone.contains(points[:, :2]))
+        if inside.size == 0 and not self._nose_in_zone(car):
+            return None
         s = paths.arc_length(points)
         half = 0.5 * car.length
         if inside.size == 0:
-            if not self._nose_in_zone(car):
-                return None
             xy = points[:, :2]
             here = int(np.argmin(np.hypot(xy[:, 0] - car.x, xy[:, 1] - car.y)))
             near: npt.NDArray[np.bool_] = np.abs(s - s[here]) <= half
@@ -670,13 +676,9 @@ class RsuCore:
         """How far the car's front is from the zone along ``points`` (default: its table
         entry) [m]: 0 when its centre or front is in the zone, None when the path does not
         reach the zone."""
-        if self._zone.contains_point(car.x, car.y):
+        if self._zone.contains_point(car.x, car.y) or self._nose_in_zone(car):
             return 0.0
         half = 0.5 * car.length
-        front_x = car.x + half * math.cos(car.heading)
-        front_y = car.y + half * math.sin(car.heading)
-        if self._zone.contains_point(front_x, front_y):
-            return 0.0
         if points is None:
             entry = self.table.get(car.vehicle)
             if entry is None:
@@ -1143,8 +1145,7 @@ class RsuCore:
                 return clash is None
 
             # a stop is news to a car not already told to stop: it reacts (REACTION_S)
-            stopping = car.mode == Mode.C_SLOW and car.kind in _STOP_KINDS
-            reaction = REACTION_S - (now - car.stop_since) if stopping else REACTION_S
+            reaction = REACTION_S - (now - car.stop_since) if car.stopping else REACTION_S
             plan = self.velocity.plan(
                 car.vehicle,
                 path,
@@ -1169,7 +1170,7 @@ class RsuCore:
         if self.config.cp_change_m is not None and self._unchanged(now, car, points):
             return None
         car.held_short = plan.short
-        if plan.kind in _STOP_KINDS and not (car.kind in _STOP_KINDS and car.mode == Mode.C_SLOW):
+        if plan.kind in _STOP_KINDS and not car.stopping:
             car.stop_since = now
         car.kind = plan.kind
         # where it will be (SpeedPlan.reserved), if further on than where it is told to stop

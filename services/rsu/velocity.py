@@ -99,9 +99,10 @@ every 0.1 s from a speed a little above its plan's (actuator lag, rounding), a s
 exactly the hard limit would otherwise slide into the zone (found by the invariant's
 property test)."""
 REACTION_S = 0.4
-"""A car told to stop keeps its speed this long before its brakes bite [s] (the command's
-way to it and its actuator lag, ``vehicle_params.actuator_lag_s`` = 0.3 s): a stop is
-short of the zone only when it is with this much travel at the current speed added.
+"""A car told to stop keeps its speed this long before its brakes bite [s]: its actuator
+lag (``vehicle_params.actuator_lag_s`` = 0.3 s) and up to one planning step (0.1 s)
+before it takes the command. A stop is short of the zone only when it is with this much
+travel at the current speed added.
 Found by the demand experiment, slot, 600 veh/h, seed 4: a hard stop that fitted the
 gap exactly carried the car's nose 1 m into the zone, where a crossing car hit it."""
 _STOP_SLACK_M = 0.5  # a stop behind a car ahead keeps this more than the follow distance

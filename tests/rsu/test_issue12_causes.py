@@ -603,7 +603,7 @@ def test_cause9_a_slot_is_the_later_arriver_as_a_c_fast_path_is(
 
 def test_cause9_a_committed_car_keeps_its_way_past_one_stopped_short() -> None:
     """A (13.9 m/s, front 22 m from the zone: it cannot stop before it) arrives after B
-    (6 m/s, front 7 m from it: only a hard stop after the reaction time, 4.5 + 1.8 m,
+    (6 m/s, front 7 m from it: only a hard stop after the reaction time, 4.5 + 2.4 m,
     keeps it out). B is told to stop, out of the zone, and A's next autonomous path keeps
     C_FAST."""
     core = _committed_pair(22.0, VMAX, 7.0, 6.0)
