@@ -307,6 +307,19 @@ BODY_TOUCH_M = 0.05
 """A body whose edge only touches the zone, within this [m], does not block it."""
 
 
+STANDING_M = 0.1
+"""A path whose points all lie within this of its first [m] stands still (a future
+path drops points closer than 0.1 m)."""
+
+
+def stands(points: FloatArray) -> bool:
+    """The path (N, 3) never moves: every point within ``STANDING_M`` of the first."""
+    if points.shape[0] < 2:
+        return True
+    d = points[:, :2] - points[0, :2]
+    return float(np.max(np.einsum("nc,nc->n", d, d))) <= STANDING_M * STANDING_M
+
+
 def ends_at_rest(points: FloatArray) -> bool:
     """The path (N, 3) ends standing still: one point, a repeated last point (a held
     stop), or a last segment of a few cm over a long time (a future path drops points

@@ -127,6 +127,18 @@ COMMIT_MARGIN_M = 0.3
 """A car that cannot stop this far before the conflict zone braking at the emergency
 limit is committed: it goes first [m]."""
 
+SIDE_MARGIN_M = 0.3
+"""A sensed car this close beside the car's swept body counts as on its path: brake for
+it [m]; a standing one at least ``PASS_MARGIN_M`` off is passed at the creep speed."""
+
+PASS_MARGIN_M = 0.05
+"""A *standing* car within ``SIDE_MARGIN_M`` of the swept body but at least this far
+from it is passed at the creep speed, not stopped for [m]. Without it two cars lock for
+good: in a jammed 4-way (demand 600 veh/h, rsu/paper, seed 0) one car stood with its
+nose 0.1 m beside a crossing car's lane, and the crossing car, standing in its way,
+would not pass it by the 0.3 m margin (issue 12; the RSU's half of that lock is
+``RsuCore._past_standing``)."""
+
 # Stop margin, creep speed, caution sampling, emergency gap: the scenario's
 # [vehicle_params] (services.model.scenario.VehicleParams), in ``AutonomousPlanner.params``.
 
@@ -428,7 +440,8 @@ class AutonomousPlanner:
         """Brake (up to the emergency limit) for any sensed car whose footprint is on the path."""
         out: list[_Constraint] = []
         lim = self.limits
-        half_w = self.width / 2.0 + 0.3
+        half_w = self.width / 2.0 + SIDE_MARGIN_M
+        pass_w = self.width / 2.0 + PASS_MARGIN_M
         if not sensed:
             return out
         # every sensed car's corners projected at once (issue 14: one call per car was a
@@ -440,6 +453,10 @@ class AutonomousPlanner:
         for k, other in enumerate(sensed):
             cs, lat = cs_all[4 * k : 4 * k + 4], lat_all[4 * k : 4 * k + 4]
             on_path = (np.abs(lat) <= half_w) & (cs > ego.s)
+            # a standing car beside the swept body, not in it: pass it at the creep speed
+            passable = other.speed <= self.params.creep_mps / 2.0 and not bool(
+                np.any(on_path & (np.abs(lat) <= pass_w))
+            )
             if not bool(np.any(on_path)):
                 # also a car crossing the path: corners on both sides of the route line
                 ahead = (cs > ego.s) & (cs < ego.s + 60.0)
@@ -454,11 +471,10 @@ class AutonomousPlanner:
             s_stop = s_obs + extra - self.length / 2.0 - self.params.emergency_gap_m
             if s_stop - ego.s > 60.0:
                 continue
-            out.append(
-                _Constraint(
-                    Reason.EMERGENCY, stop_cap(s, max(s_stop, ego.s), lim.decel_emergency), other.id
-                )
-            )
+            cap = stop_cap(s, max(s_stop, ego.s), lim.decel_emergency)
+            if passable and bool(np.any(on_path)):
+                cap = np.maximum(cap, min(self.params.creep_mps, lim.v_max))
+            out.append(_Constraint(Reason.EMERGENCY, cap, other.id))
         return out
 
     # ------------------------------------------------------------------ yield

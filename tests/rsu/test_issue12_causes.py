@@ -467,6 +467,38 @@ def test_cause8_a_car_held_by_another_body_keeps_its_order() -> None:
     assert core.counters["order_kept"] >= 1
 
 
+# Found in the demand experiment (600 veh/h, paper, seed 0): W (westbound, AUTO) overran
+# its stop and stood with its nose 0.7 m in the box, 0.1 m beside B's lane; B (northbound,
+# C_SLOW) stood in the box in front of W. W's planner waited for B's body; B was never
+# released, its path passing W's centre 3.3 m off (inside 2.8 m plus the release margin),
+# and its sweep within 2 x 0.25 m of W's nose. 9 of 44 cars never got through.
+
+
+@pytest.mark.parametrize(("w_heading", "released"), [(WEST, True), (EAST, False)])
+def test_cause8_a_car_is_released_past_a_body_standing_for_it(
+    w_heading: float, released: bool
+) -> None:
+    """W stands with its nose 0.7 m in the box, facing B's body (WEST: it waits for B);
+    B's path north passes W's centre 3.3 m off: inside the release margins, clear of it
+    without them. B is released (its own planner creeps past W's nose 0.1 m off).
+    W standing there facing away (EAST) waits for nobody: B keeps the margins and waits."""
+    cfg = config()
+    core = RsuCore(cfg, listen_s=0.0)
+    t = np.linspace(0.0, 10.0, 101)  # standing, one point every 0.1 s
+    w = np.column_stack([np.full_like(t, 5.05), np.full_like(t, 1.75), t])
+    core.on_message(0.0, message(FuturePath, "W", w, 0.0, w_heading))
+    assert core.mode_of("W") == Mode.AUTO
+    core._cars["B"] = rsu_core._Car("B", mode=Mode.C_SLOW, x=1.75, y=-0.55, heading=NORTH)
+    core.table.update("B", held(1.75, -0.55, 0.0), 0.0)
+    assert core._stands_for(core._cars["W"], w, core._cars["B"]) == released
+    b = straight((1.75, -0.255), NORTH, 1.5, 0.25)
+    # inside the release margins of W's centre, clear of it without them
+    assert core.table.conflicts("B", b, 0.25, cfg.t_free_s, (), *core._margins)
+    assert not core.table.conflicts("B", b, 0.25, cfg.t_free_s)
+    core.on_message(0.25, message(AutonomousPath, "B", b, 0.0, NORTH, Mode.C_SLOW), "rsu-1")
+    assert core.mode_of("B") == (Mode.AUTO if released else Mode.C_SLOW)
+
+
 # -- cause 9: two committed cars ---------------------------------------------------------------
 # Found in the demand experiment (paper, 400 veh/h, straight, seed 0, with the final-stop
 # controller): of two C_FAST cars that could no longer stop comfortably before the zone,

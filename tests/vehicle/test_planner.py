@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 from hypothesis import assume, example, given, settings
 from hypothesis import strategies as st
 
@@ -166,6 +167,38 @@ def test_emergency_stop_for_a_car_on_the_path(paper: Scenario) -> None:
     assert plan.reason is Reason.EMERGENCY
     stop = plan.profile.stop_s()
     assert stop is not None and stop < 125.0 - 4.5
+
+
+@pytest.mark.parametrize(
+    ("gap_m", "speed", "passes"),
+    [
+        (0.15, 0.0, True),  # standing, 0.15 m beside the swept body: creep past it
+        (0.02, 0.0, False),  # standing, closer than PASS_MARGIN_M: stop
+        (0.15, 1.0, False),  # moving (crosswise) inside SIDE_MARGIN_M: stop
+    ],
+)
+def test_a_standing_car_just_beside_the_path_is_passed_at_the_creep_speed(
+    paper: Scenario, gap_m: float, speed: float, passes: bool
+) -> None:
+    # issue 12: a car standing with its nose 0.1 m beside a crossing lane held the car in
+    # that lane by the 0.3 m side margin, and that car held it: neither ever moved
+    p = planner(paper, "A")
+    ego = state(paper, "A", 100.0, 0.0)
+    near_edge = p.width / 2.0 + gap_m  # lateral offset of the other body's near side
+    x, y = paper.route("east").point_at(110.0)
+    other = TruthState("X", 0.0, x, y + near_edge + 2.25, math.pi / 2, speed, 0.0, 0.0, 4.5, 1.8)
+    plan = p.plan(0.0, ego, [other], {})
+    assert plan.reason is Reason.EMERGENCY
+    past = plan.profile.s > 115.0
+    stop = plan.profile.stop_s()
+    if passes:
+        assert stop is None or stop > 115.0
+        beside = (plan.profile.s > 106.0) & (plan.profile.s < 112.0)
+        assert float(plan.profile.v[beside].max()) <= p.params.creep_mps + 1e-9
+        assert float(plan.profile.v[past].max()) > 0.0
+    else:
+        assert stop is not None and stop < 110.0
+        assert float(plan.profile.v[past].max()) == 0.0
 
 
 # --------------------------------------------------------------------------- rule 5
