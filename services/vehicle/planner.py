@@ -453,11 +453,8 @@ class AutonomousPlanner:
         for k, other in enumerate(sensed):
             cs, lat = cs_all[4 * k : 4 * k + 4], lat_all[4 * k : 4 * k + 4]
             on_path = (np.abs(lat) <= half_w) & (cs > ego.s)
-            # a standing car beside the swept body, not in it: pass it at the creep speed
-            passable = other.speed <= self.params.creep_mps / 2.0 and not bool(
-                np.any(on_path & (np.abs(lat) <= pass_w))
-            )
-            if not bool(np.any(on_path)):
+            in_way = bool(np.any(on_path))
+            if not in_way:
                 # also a car crossing the path: corners on both sides of the route line
                 ahead = (cs > ego.s) & (cs < ego.s + 60.0)
                 if not (bool(np.any(ahead & (lat > 0))) and bool(np.any(ahead & (lat < 0)))):
@@ -472,7 +469,9 @@ class AutonomousPlanner:
             if s_stop - ego.s > 60.0:
                 continue
             cap = stop_cap(s, max(s_stop, ego.s), lim.decel_emergency)
-            if passable and bool(np.any(on_path)):
+            # a standing car beside the swept body, not in it: pass it at the creep speed
+            standing = other.speed <= self.params.creep_mps / 2.0
+            if in_way and standing and not bool(np.any(on_path & (np.abs(lat) <= pass_w))):
                 cap = np.maximum(cap, min(self.params.creep_mps, lim.v_max))
             out.append(_Constraint(Reason.EMERGENCY, cap, other.id))
         return out
