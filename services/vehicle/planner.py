@@ -693,11 +693,17 @@ class AutonomousPlanner:
         down only at ``speed / floor`` s/s: its path's estimate is moved on by the rest
         over ``age``. Without that, two cars standing at their lines judged each other
         with estimates a period apart and each gave way to the other for ever (the
-        demand experiment, fp-only, found with a controller that stops more exactly)."""
+        demand experiment, fp-only, found with a controller that stops more exactly).
+        A car at or past its line has arrived: its estimate, 0 from its own now, does not
+        run down at all, so its path's is moved on by the whole ``age`` (else a car at
+        its line, 0.0625 s old, was first by 0.31 s to the other car and tied at 0.25 s
+        for itself, and each gave way to the other; found by the property test)."""
         lim = self.limits
         d_line = d_zone - offset - ARRIVED_M
         t_line = stamp + line_arrival(d_line, speed, self.scenario.params.decel_comfort_mps2)
-        if age > 0.0 and d_line > 0.0 and speed < ARRIVAL_FLOOR_MPS:
+        if age > 0.0 and d_line <= 0.0:
+            t_line += age
+        elif age > 0.0 and speed < ARRIVAL_FLOOR_MPS:
             t_line += age * (1.0 - max(speed, 0.0) / ARRIVAL_FLOOR_MPS)
         committed = speed * speed / (2.0 * lim.decel_emergency) > d_zone - COMMIT_MARGIN_M
         return _Arrival(t_line, committed and speed > 0.0, heading, lane)

@@ -363,6 +363,7 @@ def _aged_fp(sc: Scenario, t: TruthState, age: float) -> FuturePath:
     st.floats(0.0, 0.1),
 )
 @example(0.5, 0.35, 0.0, 0.0, 0.0, 0.1)  # the demand experiment's pair, in the paper's geometry
+@example(0.0, 0.25, 0.0, 0.0, 0.0625, 0.0)  # found by this test: a car at its line, 1/16 s old
 def test_slow_cars_at_their_lines_agree_whatever_their_paths_age(
     da: float, gap: float, va: float, vb: float, age_a: float, age_b: float
 ) -> None:
