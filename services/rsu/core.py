@@ -92,6 +92,43 @@ out of such a gridlock first. (The firm stop for a car that cannot stay out brak
 ``VelocityManager.stop_limit``, tried with it, landed on its own: random search found a
 conflict it fixes.)
 
+Tried and dropped (5 Dec, late): a starvation gate. A car that had waited (at most 2 m/s)
+``STARVED_S`` with the zone within 3 m ahead of its front held back every crossing car
+(its way crossed, not the same or the opposite) that could still stop and had waited less:
+no promotion, no release, no slot (a stop instead), and the starved car was exempt from the
+dwell. Cause it aimed at (demand experiment, slot, 600 veh/h, seed 0): the E-W queue head
+stood at its line 41-72 s, released to ``AUTO`` when its own path (held by the crossing cars
+it senses) stayed at the line and slowed again by crossing cars granted ``C_FAST`` 100-130 m
+out; once it went, its queue followed as a platoon, a car every 2.1-2.7 s. At 3 s the head
+left at 56 s instead of 66 s but the mean over seeds 0-4 rose from 16.2 to 16.9 s (the
+crossing queue's head waited instead); at 10 s the mean fell to 14.7 s only because seed 2
+collided and locked (24 of 42 finished): a ``C_FAST`` car creeping behind its leader with its
+plan ending 2 m into the zone was made to yield 3.8 m from the zone at 4.7 m/s to a car
+promoted from rest, stopped with its nose 1.3 m in and was hit. Fairness at the head costs
+more than it saves while granted cars keep their way.
+
+Open, found the same evening by the demand experiment's turning mix (70/15/15 % straight,
+left, right; the default grid is straight only), which at 600 veh/h strands cars in 3 of 5
+seeds under ``paper`` and 5 of 5 under ``slot`` (seeds 0-4), with one collision (paper,
+seed 1). Three mechanisms, each seen in a log of the RSU's mode changes:
+
+* A committed car yields too late. ``paper``, seed 1: ns-4, ``C_FAST`` 3.75 m from the
+  zone at 4.65 m/s, yields as the later arriver to sw-2, a left turner in the zone. Its
+  stop cannot stay out (0.4 s reaction and 5 m/s²: 4.0 m) and leaves its nose 0.55 m in,
+  inside the turner's sweep; sw-2 is then demoted for ns-4's ``C_SLOW`` entry, stops under
+  it and they touch. Letting a car whose centre is in the zone keep its way over one whose
+  nose at most is (tried) kept sw-2 ``C_FAST``, but its own planner's emergency stop still
+  touched ns-4's nose. What it needs: a car that can no longer stay out yields by passing
+  behind (a retimed entry, as a slot) rather than by a stop into the zone.
+* The same start, then a lock. ``paper``, seed 9 (5 of 29 finished): sn-1 yields 4.75 m out
+  at 5.2 m/s and stands with its nose 1.05 m in; the left turner ne-0 stands in the box
+  with 0.2 m of that nose in its exit; both ``AUTO``, each one's emergency stop waits for
+  the other.
+* Two standing turners. ``slot``, 800 veh/h, seed 9: opposing left turners, both
+  ``C_SLOW`` and standing (one with its centre in the zone), each one's own path within the
+  point rule's 2.8 m of the other's standing entry; neither is released
+  (``_past_standing`` covers only a car standing straight ahead of it, ``_held_by``).
+
 Status: the property holds for both policies in the derandomized examples and for the two
 cases random search once found under ``paper`` (``FOUND_BY_SEARCH``: the follow rule's lane
 was measured across the asking car's heading only; ``FOUND_BY_SEARCH_TURN``: a stop that
