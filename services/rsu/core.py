@@ -132,6 +132,9 @@ seed 1). Three mechanisms, each seen in a log of the RSU's mode changes:
   ``C_SLOW`` and standing (one with its centre in the zone), each one's own path within the
   point rule's 2.8 m of the other's standing entry; neither is released
   (``_past_standing`` covers only a car standing straight ahead of it, ``_held_by``).
+  Judging a car held standing by bodies instead of the point rule (tried) releases
+  neither either: the one's turn truly runs through the other's body, so only preventing
+  the pair from standing there helps.
 
 Status: the property holds for both policies in the derandomized examples and for the two
 cases random search once found under ``paper`` (``FOUND_BY_SEARCH``: the follow rule's lane
