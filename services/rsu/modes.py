@@ -42,7 +42,9 @@ Which path is judged, and who yields (our reading of the paper, where it is sile
 * Made safe (ours, issue 12; ``services.rsu.core``, "The invariant"): a ``C_FAST``
   car is judged on the plan it is sent, promoted only when that plan is clear over
   ``T_free``, and settles its conflicts within ``T_free``; a ``C_SLOW`` car's path is
-  all it can give, so a car that conflicts with it yields, ``C_FAST`` too; a follower
+  all it can give, so a car that conflicts with it yields, ``C_FAST`` too; of two
+  committed cars, one that can still keep out of the zone yields, and of two that
+  cannot, one whose stop stands clear of the other's way; a follower
   yields to the car ahead in its lane; a ``C_SLOW`` car is released (``NO_CONFLICT``
   -> ``AUTO``) only when its path is clear over ``T_free`` by the margins; after two
   mode changes, promotions and releases wait a dwell (bounded changes per crossing).

@@ -350,19 +350,47 @@ class VelocityManager:
                 if slot is not None:
                     return slot
                 kind = "slot_fallback"
-            factor = FIRM_STOP_FACTOR if firm else HARD_STOP_FACTOR
-            lag = track.v0 * max(reaction_s, 0.0)
-            limit = self.stop_limit(vehicle, track, now, table, exclude, factor, lag)
-            stop = self._stop(track, kind, limit, lag)
-            if lag > 0.0 and not stop.short:
-                # told to stop as short as it can, it still drives on ``lag`` before its
-                # brakes bite: reserve where it will stand, not where it is told to
-                late = self.stop_limit(vehicle, track, now, table, exclude, factor, lag, lag)
-                if late > limit + _SAME_POINT_M:
-                    reserved = self._stop(track, kind, late, lag).points
-                    return replace(stop, reserved=reserved)
-            return stop
+            return self._paper_stop(vehicle, track, now, table, exclude, firm, reaction_s, kind)
         raise ValueError(f"no coordinated path for mode {mode!r}")
+
+    def stop(
+        self,
+        vehicle: str,
+        path: VehiclePath,
+        now: float,
+        table: ReservationTable,
+        *,
+        reaction_s: float = REACTION_S,
+    ) -> SpeedPlan:
+        """The paper's ``C_SLOW`` stop for ``vehicle`` on its autonomous ``path``, under
+        either policy: what telling it to yield now would leave it doing (the RSU weighs
+        that before choosing which of two committed cars yields)."""
+        track = _track(path, self.limits_of(path), now, self.config.t_free_s)
+        return self._paper_stop(vehicle, track, now, table, (), False, reaction_s, "stop")
+
+    def _paper_stop(
+        self,
+        vehicle: str,
+        track: _Track,
+        now: float,
+        table: ReservationTable,
+        exclude: Collection[str],
+        firm: bool,
+        reaction_s: float,
+        kind: str,
+    ) -> SpeedPlan:
+        factor = FIRM_STOP_FACTOR if firm else HARD_STOP_FACTOR
+        lag = track.v0 * max(reaction_s, 0.0)
+        limit = self.stop_limit(vehicle, track, now, table, exclude, factor, lag)
+        stop = self._stop(track, kind, limit, lag)
+        if lag > 0.0 and not stop.short:
+            # told to stop as short as it can, it still drives on ``lag`` before its
+            # brakes bite: reserve where it will stand, not where it is told to
+            late = self.stop_limit(vehicle, track, now, table, exclude, factor, lag, lag)
+            if late > limit + _SAME_POINT_M:
+                reserved = self._stop(track, kind, late, lag).points
+                return replace(stop, reserved=reserved)
+        return stop
 
     def front_reach(self, tr: _Track) -> float | None:
         """Arc length [m] where the car's centre stands when its front reaches the zone

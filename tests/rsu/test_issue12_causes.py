@@ -593,8 +593,8 @@ def test_cause9_of_two_committed_cars_one_that_can_stay_out_yields(
     core = _committed_pair(a_gap, a_v, b_gap, b_v)
     a, b = core._cars["A"], core._cars["B"]
     assume(core._committed(a) and core._committed(b))
-    a_yields = core._yields(a, core.table.get("A").points, b)  # type: ignore[union-attr]
-    b_yields = core._yields(b, core.table.get("B").points, a)  # type: ignore[union-attr]
+    a_yields = core._yields(0.0, a, core.table.get("A").points, b)  # type: ignore[union-attr]
+    b_yields = core._yields(0.0, b, core.table.get("B").points, a)  # type: ignore[union-attr]
     assert a_yields != b_yields
     if core._stops_short(a) or core._stops_short(b):
         assert core._stops_short(a if a_yields else b)
@@ -630,7 +630,7 @@ def test_cause9_a_slot_is_the_later_arriver_as_a_c_fast_path_is(
         b_entry,
         abs_tol=0.1,
     )
-    assert core._yields(a, a_path, b) == a_yields
+    assert core._yields(0.0, a, a_path, b) == a_yields
 
 
 def test_cause9_a_committed_car_keeps_its_way_past_one_stopped_short() -> None:
@@ -748,3 +748,91 @@ def test_cause9_a_stop_is_reserved_where_the_car_will_stand_after_its_reaction(v
         )
         stops.append(float(core.table.get("A").points[-1, 0]))  # type: ignore[union-attr]
     assert max(stops) - min(stops) <= 0.05, stops
+
+
+def left_turn(y0: float, v: float, t0: float) -> np.ndarray:
+    """North on x = 1.75 from y = ``y0`` to the zone's edge, a left turn of radius 5.25 m
+    about the zone's corner (-3.5, -3.5), then west on y = 1.75; at a constant ``v``."""
+    radius = 5.25
+    approach = -3.5 - y0
+    arc = radius * math.pi / 2
+    s = np.linspace(0.0, v * 10.0, 120)
+    x, y = np.empty_like(s), np.empty_like(s)
+    on_in = s <= approach
+    x[on_in], y[on_in] = 1.75, y0 + s[on_in]
+    on_arc = (s > approach) & (s <= approach + arc)
+    th = (s[on_arc] - approach) / radius
+    x[on_arc], y[on_arc] = -3.5 + radius * np.cos(th), -3.5 + radius * np.sin(th)
+    out = s > approach + arc
+    x[out], y[out] = -3.5 - (s[out] - approach - arc), 1.75
+    return np.column_stack([x, y, t0 + s / v])
+
+
+def _turn_pair(s_gap: float, s_v: float, l_y: float, l_v: float) -> RsuCore:
+    """S southbound straight on, its front ``s_gap`` [m] from the zone at ``s_v``, and L a
+    left turner from the south (:func:`left_turn`) at y = ``l_y`` at ``l_v``; both
+    ``C_FAST`` on their own paths."""
+    core = RsuCore(config(), listen_s=0.0)
+    s_path = straight((-1.75, 3.5 + s_gap + 2.25), -NORTH, s_v, 0.0)
+    l_path = left_turn(l_y, l_v, 0.0)
+    for vid, pts, v, heading in (("S", s_path, s_v, -NORTH), ("L", l_path, l_v, NORTH)):
+        x, y = float(pts[0, 0]), float(pts[0, 1])
+        car = rsu_core._Car(vid, mode=Mode.C_FAST, x=x, y=y, heading=heading, speed=v)
+        car.autonomous = message(AutonomousPath, vid, pts, v, heading, Mode.C_FAST)
+        core._cars[vid] = car
+        core.table.update(vid, pts, 0.0)
+    return core
+
+
+def test_cause9_of_two_that_cannot_stay_out_the_one_whose_stop_clears_yields() -> None:
+    """L, a left turner from the south, has its nose in the zone at 2.2 m/s; S, southbound
+    straight on, is 3.75 m from it at 4.65 m/s. Both are C_FAST and neither can keep out
+    of the zone any more, even braking hard. S arrives later, so the paper's rule stops
+    S, and S's stop leaves its nose in the zone, where L's turn sweeps (demand
+    experiment, turning mix, paper, 600 veh/h, seed 1: they touched). L's stop stands
+    clear of S's lane, so L yields and S drives on."""
+    core = _turn_pair(3.75, 4.65, -4.2, 2.2)
+    s, lt = core._cars["S"], core._cars["L"]
+    s_path = core.table.get("S").points  # type: ignore[union-attr]
+    l_path = core.table.get("L").points  # type: ignore[union-attr]
+    assert core._committed(s) and core._committed(lt)
+    assert not core._stops_short(s) and not core._stops_short(lt)
+    assert paths.zone_entry_time(s_path, ZONE) > paths.zone_entry_time(l_path, ZONE)
+    assert not core._stop_clears(0.0, s, lt, l_path)  # S's stop ends in L's sweep
+    assert core._stop_clears(0.0, lt, s, s_path)
+    assert core._yields(0.0, lt, l_path, s) and not core._yields(0.0, s, s_path, lt)
+    out = core._give_way_to(0.0, s, None)
+    assert ("ModeCommand", Mode.C_SLOW) in sent(out, "L")
+    assert core._stop_clears(0.0, lt, s, s_path)  # the stop it was sent, now its entry
+    assert core.mode_of("S") == Mode.C_FAST
+
+
+@settings(max_examples=150, deadline=None)
+@given(
+    s_gap=st.floats(0.0, 25.0),
+    s_v=st.floats(1.0, VMAX),
+    l_y=st.floats(-25.0, -3.6),
+    l_v=st.floats(0.5, 10.0),
+)
+def test_cause9_the_car_that_yields_stands_clear_when_either_can(
+    s_gap: float, s_v: float, l_y: float, l_v: float
+) -> None:
+    """Whatever their speeds and distances, of a left turner and a straight car crossing its
+    turn, both committed: exactly one yields; one that can still keep out of the zone
+    braking hard when either can; else one whose stop stands clear of the other's way
+    when either's does."""
+    core = _turn_pair(s_gap, s_v, l_y, l_v)
+    s, lt = core._cars["S"], core._cars["L"]
+    s_path = core.table.get("S").points  # type: ignore[union-attr]
+    l_path = core.table.get("L").points  # type: ignore[union-attr]
+    assume(core._committed(s) and core._committed(lt))
+    s_yields = core._yields(0.0, s, s_path, lt)
+    assert s_yields != core._yields(0.0, lt, l_path, s)
+    yielder, keeper, keeper_path = (s, lt, l_path) if s_yields else (lt, s, s_path)
+    if core._stops_short(s) or core._stops_short(lt):
+        assert core._stops_short(yielder)
+        return
+    s_clear = core._stop_clears(0.0, s, lt, l_path)
+    l_clear = core._stop_clears(0.0, lt, s, s_path)
+    if s_clear or l_clear:
+        assert core._stop_clears(0.0, yielder, keeper, keeper_path)
