@@ -836,3 +836,47 @@ def test_cause9_the_car_that_yields_stands_clear_when_either_can(
     l_clear = core._stop_clears(0.0, lt, s, s_path)
     if s_clear or l_clear:
         assert core._stop_clears(0.0, yielder, keeper, keeper_path)
+
+
+def _rests_at(y_rest: float, v: float, t0: float) -> np.ndarray:
+    """Northbound on x = 1.75 at ``v``, braking at a constant rate to rest at ``y_rest``,
+    then held: a path its own planner stopped (behind a body it senses)."""
+    a = 1.9
+    run = v * v / (2.0 * a)
+    t_stop = v / a
+    t = np.linspace(0.0, t_stop, 60)
+    y = y_rest - run + v * t - 0.5 * a * t * t
+    hold = np.linspace(t_stop, 10.0, 60)[1:]
+    ys = np.concatenate([y, np.full(hold.shape, y_rest)])
+    return np.column_stack([np.full(ys.shape, 1.75), ys, t0 + np.concatenate([t, hold])])
+
+
+@pytest.mark.parametrize("standing", [True, False])
+def test_cause10_a_car_is_not_let_rest_in_a_box_another_car_stands_in(standing: bool) -> None:
+    """W, a left turner from the north, stands mid-turn in the zone (or crosses it at
+    3 m/s). N, ``C_FAST`` from the south, sends a path its own planner ends at rest with
+    its nose 2.3 m into the zone (W's body is in its turn). Standing, W would wait for N's
+    nose and N for W's body, for good (demand experiment, turning mix, paper, 600 veh/h,
+    seed 0): N, which can still stop short, is told to stop out of the zone. Behind a car
+    that crosses, N's stop is only for a moment and it keeps its way."""
+    core = RsuCore(config(), listen_s=0.0)
+    w_v = 0.0 if standing else 3.0
+    w_pts = held(-1.72, 1.33, 0.0) if standing else straight((-1.72, 1.33), -NORTH, w_v, 0.0)
+    w = rsu_core._Car("W", mode=Mode.C_SLOW, x=-1.72, y=1.33, heading=-NORTH, speed=w_v)
+    w.autonomous = message(AutonomousPath, "W", w_pts, w_v, -NORTH, Mode.C_SLOW)
+    w.kind = "stop"
+    core._cars["W"] = w
+    core.table.update("W", w_pts, 0.0)
+    n_pts = _rests_at(-3.43, 8.0, 0.0)
+    y0 = float(n_pts[0, 1])
+    n = rsu_core._Car("N", mode=Mode.C_FAST, x=1.75, y=y0, heading=NORTH, speed=8.0)
+    core._cars["N"] = n
+    core.table.update("N", n_pts, 0.0)
+    core.on_message(0.0, message(AutonomousPath, "N", n_pts, 8.0, NORTH, Mode.C_FAST, 2), "rsu-1")
+    if standing:
+        assert core.mode_of("N") == Mode.C_SLOW
+        assert _front_out_of_zone(core.table.get("N").points, NORTH)  # type: ignore[union-attr]
+        assert core.counters["box_blocked"] >= 1
+    else:
+        assert core.mode_of("N") == Mode.C_FAST
+        assert core.counters["box_blocked"] == 0
