@@ -69,6 +69,14 @@ policies, cars following their coordinated paths exactly) and cause by cause in
 7. Under ``slot``, no slot leaves a car that can still stop before the zone standing
    in it: a path that ends at rest with the body in the zone gets the paper's stop
    instead (``VelocityManager.rests_in_zone``, ``tests/rsu/test_box.py``).
+8. Don't block the box (both policies, 6 Dec): no car that can still keep out of the
+   zone braking hard keeps or gets ``C_FAST``, is released or left ``AUTO`` on a path that
+   ends at rest with its body in the zone while another car stands in it
+   (``_box_blocked``; cause 10 in ``tests/rsu/test_issue12_causes.py``, a property over
+   where that car stands and how the other comes). Only a standing car counts: a car
+   crossing in front stops a follower's own path in the box only for a moment, and
+   holding every such path (tried for grants, see ``VelocityManager``) cost more than
+   it saved.
 
 Tried and dropped (3 Dec, c821a6a): first come, first served claims under ``slot``. A
 ``C_SLOW`` car with no slot took the earliest one that only later arrivals (first heard
@@ -959,7 +967,7 @@ class RsuCore:
         zone = self._zone
         if not paths.body_in_zone(points, zone, car.length, car.width, car.heading):
             return False
-        if self._body_now_in_zone(car) or not self._stops_short(car, points):
+        if self._body_now_in_zone(car) or not self._short_at(car, self._nose_gap(car, points)):
             return False
         for other in self._cars.values():
             if other is car or other.speed > paths.AT_REST_MPS:
@@ -972,6 +980,19 @@ class RsuCore:
             self.counters["box_blocked"] += 1
             return True
         return False
+
+    def _nose_gap(self, car: _Car, points: FloatArray) -> float | None:
+        """How far [m] ``car``'s front is from the zone along ``points``, continued straight
+        past their end (a path whose centre stops short may still take the front in, where
+        :meth:`_front_gap` sees no zone); None when the front never reaches it."""
+        half = 0.5 * car.length
+        s = paths.arc_length(points)
+        s_zone = paths.zone_entry_s(points[:, :2], s, self._zone, half)
+        if s_zone is None:
+            return None
+        xy = points[:, :2]
+        here = int(np.argmin(np.hypot(xy[:, 0] - car.x, xy[:, 1] - car.y)))
+        return max(s_zone - half - float(s[here]), 0.0)
 
     def _body_now_in_zone(self, car: _Car) -> bool:
         """``car``'s body, as it stands now, overlaps the zone."""

@@ -44,7 +44,8 @@ Two policies (``Policy``):
     tried and dropped: it held cars whose own path stopped in the box only for a
     moment (an emergency stop behind a car crossing in front), and ``four-way-flows``
     under ``paper`` (seed 0) went from 14.2 s of mean delay to 26.9 s, or stranded 14
-    of 30 cars with the grant rule alone.
+    of 30 cars with the grant rule alone. The narrower rule kept (6 Dec,
+    ``RsuCore._box_blocked``) holds such a path only while another car stands in the box.
 
 The positions are the autonomous path's distinct positions: repeated points
 (a held stop at its end) are merged, and the autonomous path is taken to stop

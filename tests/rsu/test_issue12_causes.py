@@ -24,7 +24,7 @@ from protocol.messages import (
     ModeCommand,
     VehiclePath,
 )
-from services.model.geometry import Polyline
+from services.model.geometry import Polyline, convex_overlap, footprint
 from services.model.types import Policy
 from services.rsu import core as rsu_core
 from services.rsu import paths, velocity
@@ -880,3 +880,43 @@ def test_cause10_a_car_is_not_let_rest_in_a_box_another_car_stands_in(standing: 
     else:
         assert core.mode_of("N") == Mode.C_FAST
         assert core.counters["box_blocked"] == 0
+
+
+@settings(max_examples=100, deadline=None)
+@given(
+    w_x=st.floats(-3.0, 3.0),
+    w_y=st.floats(-3.0, 3.0),
+    w_heading=st.sampled_from([EAST, NORTH, WEST, -NORTH, 0.75 * math.pi, -0.25 * math.pi]),
+    n_v=st.floats(1.0, VMAX),
+    n_rest=st.floats(-5.7, -1.0),
+)
+def test_cause10_no_car_that_can_stay_out_rests_in_a_box_one_stands_in(
+    w_x: float, w_y: float, w_heading: float, n_v: float, n_rest: float
+) -> None:
+    """Wherever a car W stands in the zone and however fast N comes, ``C_FAST``, on a path
+    its own planner ends at rest with its body in the zone: if N can still keep out of
+    the zone braking hard, it is told to stop, and its stop keeps its front out of the
+    zone (unless W waits for N's body, ``_held_by``)."""
+    core = RsuCore(config(), listen_s=0.0)
+    w = rsu_core._Car("W", mode=Mode.C_SLOW, x=w_x, y=w_y, heading=w_heading, speed=0.0)
+    w_pts = held(w_x, w_y, 0.0)
+    w.autonomous = message(AutonomousPath, "W", w_pts, 0.0, w_heading, Mode.C_SLOW)
+    w.kind = "stop"
+    core._cars["W"] = w
+    core.table.update("W", w_pts, 0.0)
+    n_pts = _rests_at(n_rest, n_v, 0.0)
+    n = rsu_core._Car("N", mode=Mode.C_FAST, x=1.75, y=float(n_pts[0, 1]), heading=NORTH, speed=n_v)
+    core._cars["N"] = n
+    core.table.update("N", n_pts, 0.0)
+    assume(not core._held_by(w, w_pts, n))
+    assume(n_rest + 2.25 > -3.5 + paths.BODY_TOUCH_M + 1e-3)  # its body truly in the zone
+    # N's own planner stops it short of W's body, with room to pass
+    w_body = footprint(w_x, w_y, w_heading, 4.5 + 0.5, 1.8 + 0.5)
+    assume(not convex_overlap(w_body, footprint(1.75, n_rest, NORTH, 4.5, 1.8)))
+    gap = -3.5 - (float(n_pts[0, 1]) + 2.25)  # its front from the zone
+    hard = velocity.HARD_STOP_FACTOR * config().decel_comfort_mps2
+    short = gap > 0.0 and n_v * n_v <= 2.0 * hard * (gap - n_v * velocity.REACTION_S) - 1e-6
+    core.on_message(0.0, message(AutonomousPath, "N", n_pts, n_v, NORTH, Mode.C_FAST, 2), "rsu-1")
+    if short:
+        assert core.mode_of("N") == Mode.C_SLOW
+        assert _front_out_of_zone(core.table.get("N").points, NORTH)  # type: ignore[union-attr]
