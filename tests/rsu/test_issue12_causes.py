@@ -920,3 +920,74 @@ def test_cause10_no_car_that_can_stay_out_rests_in_a_box_one_stands_in(
     if short:
         assert core.mode_of("N") == Mode.C_SLOW
         assert _front_out_of_zone(core.table.get("N").points, NORTH)  # type: ignore[union-attr]
+
+
+@pytest.mark.parametrize("held_by_rsu", [True, False])
+def test_cause10_a_car_is_released_past_a_body_this_rsu_holds(held_by_rsu: bool) -> None:
+    """B, C_SLOW, waits south of the zone; W stands in the zone beside B's way, centres
+    2.6 m apart (inside the point rule's 2.8 m), bodies 0.8 m apart (demand experiment,
+    turning mix, slot, 600 veh/h, seed 0: two opposing left turners, one held at the
+    zone's edge; the other's turn passed its body 0.15-0.25 m clear, and the point rule
+    held both, for good). W held by this RSU's stop moves only when the RSU releases it,
+    which it judges against B's new path: B goes, and W stays held. W standing on its
+    own (``AUTO``) may move at any time: B waits."""
+    cfg = config(Policy.SLOT)
+    core = RsuCore(cfg, listen_s=0.0)
+    wx = 1.75 - 2.6
+    w_pts = held(wx, 0.0, 0.0)
+    if held_by_rsu:
+        w = rsu_core._Car("W", mode=Mode.C_SLOW, x=wx, y=0.0, heading=-NORTH, kind="stop")
+        w.autonomous = message(AutonomousPath, "W", w_pts, 0.0, -NORTH, Mode.C_SLOW)
+        core._cars["W"] = w
+        core.table.update("W", w_pts, 0.0)
+    else:
+        core.on_message(0.0, message(FuturePath, "W", w_pts, 0.0, -NORTH))
+    b_pts = straight((1.75, -6.0), NORTH, 3.0, 0.0)
+    assert core.table.naive_conflicts("B", b_pts, 0.0, cfg.t_free_s) != []  # the point rule
+    b = rsu_core._Car("B", mode=Mode.C_SLOW, x=1.75, y=-6.0, heading=NORTH, kind="stop")
+    core._cars["B"] = b
+    core.table.update("B", held(1.75, -6.0, 0.0), 0.0)
+    core.on_message(0.0, message(AutonomousPath, "B", b_pts, 0.0, NORTH, Mode.C_SLOW), "rsu-1")
+    assert (core.mode_of("B") != Mode.C_SLOW) == held_by_rsu
+    if held_by_rsu:  # W, whose way now meets B's new path, stays held
+        w_own = straight((wx, 0.0), -NORTH, 2.0, 0.1)
+        core.on_message(
+            0.1, message(AutonomousPath, "W", w_own, 0.0, -NORTH, Mode.C_SLOW, 2), "rsu-1"
+        )
+        assert core.mode_of("W") == Mode.C_SLOW
+
+
+@settings(max_examples=100, deadline=None)
+@given(
+    wx=st.floats(-4.0, 4.0),
+    wy=st.floats(-4.0, 4.0),
+    w_heading=st.floats(-math.pi, math.pi),
+    b_v=st.floats(0.5, VMAX),
+)
+def test_cause10_no_release_past_a_held_body_touches_it(
+    wx: float, wy: float, w_heading: float, b_v: float
+) -> None:
+    """Wherever this RSU holds W standing, B (C_SLOW, south of the zone) is released or
+    promoted only onto a path whose body keeps clear of W's (``STUCK_PASS_M``)."""
+    cfg = config(Policy.SLOT)
+    core = RsuCore(cfg, listen_s=0.0)
+    w_pts = held(wx, wy, 0.0)
+    w = rsu_core._Car("W", mode=Mode.C_SLOW, x=wx, y=wy, heading=w_heading, kind="stop")
+    w.autonomous = message(AutonomousPath, "W", w_pts, 0.0, w_heading, Mode.C_SLOW)
+    core._cars["W"] = w
+    core.table.update("W", w_pts, 0.0)
+    b_pts = straight((1.75, -12.0), NORTH, b_v, 0.0)
+    b = rsu_core._Car("B", mode=Mode.C_SLOW, x=1.75, y=-12.0, heading=NORTH, kind="stop")
+    core._cars["B"] = b
+    core.table.update("B", held(1.75, -12.0, 0.0), 0.0)
+    core.on_message(0.0, message(AutonomousPath, "B", b_pts, 0.0, NORTH, Mode.C_SLOW), "rsu-1")
+    if core.mode_of("B") == Mode.C_SLOW:
+        return
+    entry = core.table.get("B")
+    pts = b_pts if entry is None else entry.points
+    grow = rsu_core.STUCK_PASS_M - 1e-6
+    w_body = footprint(wx, wy, w_heading, 4.5 + grow, 1.8 + grow)
+    for x, y in pts[:, :2]:
+        assert not convex_overlap(
+            w_body, footprint(float(x), float(y), NORTH, 4.5 + grow, 1.8 + grow)
+        )
