@@ -77,6 +77,13 @@ policies, cars following their coordinated paths exactly) and cause by cause in
    crossing in front stops a follower's own path in the box only for a moment, and
    holding every such path (tried for grants, see ``VelocityManager``) cost more than
    it saved.
+9. A body this RSU holds standing (``C_SLOW`` on a stop, at rest) is an obstacle: a
+   release or promotion may pass it by bodies, 0.1 m clear (``_passes_stuck``), though
+   within the point rule's 2.8 m of it; it moves only when this RSU releases it, judged
+   against the passing car's new path. The one exception to 1 besides a car standing
+   for the other (``_past_standing``); tested as a property (cause 10: no such release
+   touches the held body) and by example (two held left turners, each in the other's
+   way, locked for good without it).
 
 Tried and dropped (3 Dec, c821a6a): first come, first served claims under ``slot``. A
 ``C_SLOW`` car with no slot took the earliest one that only later arrivals (first heard
@@ -138,20 +145,29 @@ against demand"). Three mechanisms, each seen in a log of the RSU's mode changes
   seed 9 (5 of 29 finished): sn-1 yields 4.75 m out at 5.2 m/s and stands with its nose
   1.05 m in; the left turner ne-0 stands in the box with 0.2 m of that nose in its exit;
   both ``AUTO``, each one's emergency stop waits for the other.
-* Two standing turners. ``slot``, 800 veh/h, seed 9: opposing left turners, both
-  ``C_SLOW`` and standing (one with its centre in the zone), each one's own path within the
-  point rule's 2.8 m of the other's standing entry; neither is released
-  (``_past_standing`` covers only a car standing straight ahead of it, ``_held_by``).
-  Judging a car held standing by bodies instead of the point rule (tried) releases
-  neither either: the one's turn truly runs through the other's body, so only preventing
-  the pair from standing there helps. The same pair after the fix above, ``paper``, 600
-  veh/h, seed 0 (20 of 44 finished): ne-1, turning left from the north with its centre in
-  the zone, is rightly stopped there to let a straight car by; sw-2, ``C_FAST`` behind that
-  car, is stopped by its own sensors (ne-1's body in its turn) with its nose 2.3 m into
-  the zone, in ne-1's exit. sw-2's plan ended at rest where its own path did, 5.8 m from
-  ne-1's standing reservation, so no rule saw it; a ``C_FAST`` plan that ends with the
-  body in the zone needs to be held short when the car can still stop there (tried for
-  grants only, and dropped: see ``VelocityManager``'s docstring).
+* Two standing turners (two cases fixed 6 Dec by rules 8 and 9 above, others open).
+  ``slot``, 800 veh/h, seed 9 (open): opposing left turners, both ``C_SLOW`` and standing
+  (one with its centre in the zone), each one's own path within the point rule's 2.8 m of
+  the other's standing entry; neither is released (``_past_standing`` covers only a car
+  standing straight ahead of it, ``_held_by``). Judging a car held standing by bodies
+  instead of the point rule (tried) releases neither either: the one's turn truly runs
+  through the other's body, so only preventing the pair from standing there helps.
+  ``paper``, 600 veh/h, seed 0 (20 of 44 finished; fixed by rule 8): ne-1, turning left
+  from the north with its centre in the zone, is rightly stopped there to let a straight
+  car by; sw-2, ``C_FAST`` behind that car, is stopped by its own sensors (ne-1's body in
+  its turn) with its nose 2.3 m into the zone, in ne-1's exit. sw-2's plan ended at rest
+  where its own path did, 5.8 m from ne-1's standing reservation, so no rule saw it.
+  ``slot``, 600 veh/h, seed 0 (27 of 44 finished; fixed by rule 9): sw-1 held with its
+  nose 2.2 m in, ne-2 held at the edge; sw-1's turn passes ne-2's body 0.15-0.25 m clear,
+  but within the point rule's 2.8 m, so neither was ever released. ``paper``, 600 veh/h,
+  seed 0 again with rule 9 (27 of 44; 41 with rule 8 alone, open): ne-2 and sw-2, opposing
+  left turners both ``C_FAST`` behind leaders, saw each other only when both were 1-2 m
+  from the zone (each reservation ended at rest behind its leader); both stops ended in
+  the zone; rule 9 then promoted sw-2 past ne-2's held body (more than 0.25 m clear), but
+  sw-2's own planner still yielded to ne-2's broadcast future path (which would drive on
+  into sw-2's turn), and once sw-2 stood ``C_FAST`` with its plan at rest, ne-2 was promoted
+  too: both stand ``C_FAST``, each sensing the other. What both need is to see a crossing
+  ``C_FAST`` car's way beyond where its reservation ends behind its leader.
 
 Status: the property holds for both policies in the derandomized examples and for the two
 cases random search once found under ``paper`` (``FOUND_BY_SEARCH``: the follow rule's lane
