@@ -244,7 +244,7 @@ from protocol.messages import (
     RsuBeacon,
     VehiclePath,
 )
-from services.model.geometry import any_rects_overlap, convex_overlap, footprint, footprints
+from services.model.geometry import any_rects_overlap, footprint, footprints
 from services.model.send_rule import ChangeRule
 from services.model.types import Policy
 from services.rsu import paths
@@ -420,7 +420,6 @@ class RsuCore:
         """Generation time of the last header [µs] (:meth:`_header`)."""
         self._next_beacon: float | None = None
         self._zone = paths.ConvexZone.of(config.conflict_zone)
-        self._zone_vertices = np.asarray(self._zone.vertices, dtype=np.float64)
         self._margins = (config.release_margin_m, config.release_margin_s)
         # zone occupancy of each table entry, by the entry's points object (an entry's
         # points are replaced, never changed): the crossing order checks every entry
@@ -749,14 +748,8 @@ class RsuCore:
             return True
         grow = STUCK_PASS_M
         mine = self._bodies_at(points, near, car, grow)
-        theirs = footprints(
-            np.array([other.x]),
-            np.array([other.y]),
-            np.array([other.heading]),
-            other.length + grow,
-            other.width + grow,
-        )
-        return not any_rects_overlap(mine, theirs)
+        theirs = footprint(other.x, other.y, other.heading, other.length + grow, other.width + grow)
+        return not any_rects_overlap(mine, theirs[np.newaxis])
 
     def _entry_occupancy(self, car: _Car, points: FloatArray) -> tuple[float, float] | None:
         """:meth:`_occupancy` of a table entry, computed once per entry (and nose)."""
@@ -1073,13 +1066,7 @@ class RsuCore:
 
     def _body_now_in_zone(self, car: _Car) -> bool:
         """``car``'s body, as it stands now, overlaps the zone."""
-        cx, cy = self._zone.centroid
-        if math.hypot(car.x - cx, car.y - cy) > self._zone.radius + math.hypot(
-            car.length, car.width
-        ):
-            return False  # far from the box: the cheap test first (a jam stands mostly outside)
-        body = footprint(car.x, car.y, car.heading, car.length, car.width)
-        return convex_overlap(body, self._zone_vertices)
+        return paths.pose_in_zone(car.x, car.y, car.heading, car.length, car.width, self._zone)
 
     def _yields(self, now: float, car: _Car, car_points: FloatArray, other: _Car) -> bool:
         """Must ``car`` (whose path is ``car_points``) give way to ``other``?
@@ -1113,17 +1100,15 @@ class RsuCore:
             other_short = self._short_at(other, other_gap)
             if car_short != other_short:
                 return car_short
-            if not car_short:
+            if not car_short and other_entry is not None:
                 # Neither can: the one whose stop stands clear of the other's way yields
                 # (demand experiment, turning mix, paper, 600 veh/h, seed 1: a straight car
                 # 3.75 m out at 4.65 m/s, the later arriver, stopped 0.55 m into the zone,
                 # in the sweep of a left turner that had just entered it, and they touched;
                 # the turner, still on its approach lane, could stop clear of it)
-                theirs = other_entry.points if other_entry is not None else None
-                if theirs is not None:
-                    car_clear = self._stop_clears(now, car, other, theirs)
-                    if car_clear != self._stop_clears(now, other, car, car_points):
-                        return car_clear
+                car_clear = self._stop_clears(now, car, other, other_entry.points)
+                if car_clear != self._stop_clears(now, other, car, car_points):
+                    return car_clear
         fast, slow = Mode.C_FAST, Mode.C_SLOW
         if other.mode == slow:
             if other.kind in _SLOT_KINDS and not self._short_at(car, car_gap):
@@ -1255,8 +1240,11 @@ class RsuCore:
                     entry = paths.zone_entry_time(path.points, self._zone)
                     far = entry > now + cfg.t_collision_s
                     held = not may and far and car.mode == Mode.AUTO
-                    free = not self._zone_taken(car, query, now)
-                    if held and free and not self._box_blocked(car, query):
+                    if (
+                        held
+                        and not self._zone_taken(car, query, now)
+                        and not self._box_blocked(car, query)
+                    ):
                         event = RsuEvent.NO_CONFLICT
                     else:
                         event = RsuEvent.CONFLICT

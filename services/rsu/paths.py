@@ -342,19 +342,28 @@ def body_in_zone(
     along its last moving segment (else ``heading`` [rad]), overlaps the zone by more
     than ``BODY_TOUCH_M``: a path that ends at rest there (:func:`ends_at_rest`) leaves
     the car standing in the box, blocking every crossing through it."""
-    zone = ConvexZone.of(polygon)
     x, y = float(xy[-1, 0]), float(xy[-1, 1])
+    last = heading_of(xy, xy.shape[0] - 2)
+    h = heading if last is None else last
+    return pose_in_zone(x, y, h, length, width, polygon, BODY_TOUCH_M)
+
+
+def pose_in_zone(
+    x: float,
+    y: float,
+    heading: float,
+    length: float,
+    width: float,
+    polygon: ConvexZone | npt.ArrayLike,
+    shrink: float = 0.0,
+) -> bool:
+    """The body of a car of ``length`` x ``width`` [m] at (x, y) heading ``heading`` [rad]
+    overlaps the zone by more than ``shrink`` [m] (each side pulled in by that much)."""
+    zone = ConvexZone.of(polygon)
     cx, cy = zone.centroid
     if math.hypot(x - cx, y - cy) > zone.radius + 0.5 * math.hypot(length, width):
         return False  # far from the box: the cheap test first
-    last = heading_of(xy, xy.shape[0] - 2)
-    body = footprint(
-        x,
-        y,
-        heading if last is None else last,
-        max(length - 2.0 * BODY_TOUCH_M, 0.0),
-        max(width - 2.0 * BODY_TOUCH_M, 0.0),
-    )
+    body = footprint(x, y, heading, max(length - 2.0 * shrink, 0.0), max(width - 2.0 * shrink, 0.0))
     return convex_overlap(body, np.asarray(zone.vertices))
 
 

@@ -380,6 +380,8 @@ class VelocityManager:
         reaction_s: float,
         kind: str,
     ) -> SpeedPlan:
+        """The paper's stop on ``track``, within :meth:`stop_limit`, reserved where the car
+        will stand after ``reaction_s``."""
         factor = FIRM_STOP_FACTOR if firm else HARD_STOP_FACTOR
         lag = track.v0 * max(reaction_s, 0.0)
         limit = self.stop_limit(vehicle, track, now, table, exclude, factor, lag)
