@@ -76,8 +76,10 @@ from protocol.messages import Mode, VehicleLimits, VehiclePath
 from services.model.types import Policy
 from services.rsu import paths
 from services.rsu.reservation import (
+    ENDS_ROUNDING,
     LANE_SLACK_M,
     SAME_WAY_RAD,
+    BoolArray,
     Entry,
     ReservationTable,
     follow_distance,
@@ -225,13 +227,50 @@ def _box(xy: FloatArray) -> tuple[float, float, float, float]:
     return float(x.min()), float(x.max()), float(y.min()), float(y.max())
 
 
-def _beyond(box: tuple[float, float, float, float], x: float, y: float, reach: float) -> bool:
-    """(x, y) is farther than ``reach`` [m] from the box, so from any point of a polyline
-    inside it: ``paths.project`` would find it farther too (a cheap test before it; the
-    slack is far above float rounding). Issue 14: the projections were the RSU's cost."""
-    dx = max(box[0] - x, x - box[1], 0.0)
-    dy = max(box[2] - y, y - box[3], 0.0)
-    return dx * dx + dy * dy > (reach + 1e-6) ** 2
+def _beyond(
+    box: tuple[float, float, float, float], x: FloatArray, y: FloatArray, reach: FloatArray
+) -> BoolArray:
+    """Per point, (x, y) is farther than ``reach`` [m] from the box, so from any point of
+    a polyline inside it: ``paths.project`` would find it farther too (a cheap test before
+    it; the slack is far above float rounding). Issue 14: the projections were the RSU's
+    cost."""
+    dx = np.maximum(np.maximum(box[0] - x, x - box[1]), 0.0)
+    dy = np.maximum(np.maximum(box[2] - y, y - box[3]), 0.0)
+    out: BoolArray = dx * dx + dy * dy > (reach + 1e-6) ** 2
+    return out
+
+
+def _near_lane(
+    vehicle: str,
+    tr: _Track,
+    now: float,
+    table: ReservationTable,
+    exclude: Collection[str],
+    *,
+    both_ends: bool,
+) -> list[tuple[Entry, float]]:
+    """The live entries (but this car's and ``exclude``) whose path starts (and, with
+    ``both_ends``, ends) near enough to this car's path to be in its lane, each with
+    that lane reach [m] (half both widths plus ``LANE_SLACK_M``), in the table's order:
+    candidates for the exact projections of the lane searches."""
+    if tr.xy.shape[0] < 2:
+        return []
+    names, ends, widths = table.path_ends(vehicle, now, exclude)
+    if not names:
+        return []
+    box = _box(tr.xy)
+    lane = 0.5 * (tr.width + widths) + LANE_SLACK_M
+    # widened by the ends' rounding (sqrt(2) x ENDS_ROUNDING x the larger coordinate, at most)
+    slack = 2.0 * ENDS_ROUNDING * np.abs(ends)
+    far = _beyond(box, ends[:, 0], ends[:, 1], lane + slack[:, 0] + slack[:, 1])
+    if both_ends:
+        far |= _beyond(box, ends[:, 2], ends[:, 3], lane + slack[:, 2] + slack[:, 3])
+    out: list[tuple[Entry, float]] = []
+    for k in np.flatnonzero(~far).tolist():
+        entry = table.get(names[k])
+        if entry is not None:
+            out.append((entry, float(lane[k])))
+    return out
 
 
 def _holds(x: float, y: float, t_from: float, t_until: float, step: float) -> FloatArray:
@@ -437,17 +476,8 @@ class VelocityManager:
         out: list[tuple[FloatArray, FloatArray, float]] = []
         if tr.xy.shape[0] < 2:
             return out
-        box = _box(tr.xy)
-        for other in table:
-            entry = table.get(other)
-            if other == vehicle or other in exclude or entry is None:
-                continue
-            if not table.is_live(other, now) or entry.points.shape[0] == 0:
-                continue
-            lane = 0.5 * (tr.width + entry.width) + LANE_SLACK_M
+        for entry, lane in _near_lane(vehicle, tr, now, table, exclude, both_ends=False):
             p0 = entry.points[0]
-            if _beyond(box, float(p0[0]), float(p0[1]), lane):
-                continue  # not in this lane
             first = paths.project(tr.xy, float(p0[0]), float(p0[1]))
             if first[1] > lane or first[0] <= 0.0:
                 continue
@@ -561,21 +591,7 @@ class VelocityManager:
                 limit = min(limit, firm + overrun)
         if tr.xy.shape[0] < 2:
             return limit
-        box = _box(tr.xy)
-        near: list[tuple[Entry, float]] = []
-        for other in table:
-            entry = table.get(other)
-            if other == vehicle or other in exclude or entry is None:
-                continue
-            if not table.is_live(other, now) or entry.points.shape[0] == 0:
-                continue
-            lane = 0.5 * (tr.width + entry.width) + LANE_SLACK_M
-            p0, p1 = entry.points[0], entry.points[-1]
-            if _beyond(box, float(p0[0]), float(p0[1]), lane) or _beyond(
-                box, float(p1[0]), float(p1[1]), lane
-            ):
-                continue  # not in this lane
-            near.append((entry, lane))
+        near = _near_lane(vehicle, tr, now, table, exclude, both_ends=True)
         if not near:
             return limit
         # first and last points of every car near the lane projected at once (issue 14)

@@ -10,6 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from services.rsu.reservation import (
+    ENDS_ROUNDING,
     FOLLOW_GAP_M,
     FOLLOW_WINDOW_S,
     LANE_SLACK_M,
@@ -388,3 +389,46 @@ def test_jam_with_churn_equals_brute_force() -> None:
             assert fast == table.naive_conflicts(v, pts, 0.1, 10.0, (), *margins), v
             total += len(fast)
     assert total > 40  # a jam: plenty of conflicts to compare
+
+
+@settings(max_examples=150, deadline=None)
+@given(
+    paths_=st.lists(
+        st.tuples(st.floats(-9.9e6, 9.9e6), st.floats(-9.9e6, 9.9e6), st.integers(0, 4)),
+        min_size=0,
+        max_size=8,
+    ),
+    removed=st.sets(st.integers(0, 7), max_size=3),
+    excluded=st.sets(st.integers(0, 7), max_size=2),
+    stale=st.sets(st.integers(0, 7), max_size=2),
+)
+def test_path_ends_are_the_live_entries_first_and_last_points(
+    paths_: list[tuple[float, float, int]], removed: set[int], excluded: set[int], stale: set[int]
+) -> None:
+    """``path_ends`` (the lane searches' prefilter) gives every live entry with a point but
+    the asking car's and the excluded ones, each path's first and last points within the
+    float32 rounding it documents, and its width; nothing removed, expired or empty."""
+    table = ReservationTable(D, H, 0.5)
+    sent: dict[str, np.ndarray] = {}
+    for i, (x, y, n) in enumerate(paths_):
+        pts = line(x, y, 0.7, -0.3, 0.0, n, 0.1)
+        vehicle = f"v{i}"
+        table.update(vehicle, pts, -1.0 if i in stale else 0.0, (4.5, 1.0 + 0.1 * i))
+        sent[vehicle] = pts
+    for i in removed:
+        table.remove(f"v{i}")
+    names, ends, widths = table.path_ends("v0", 0.2, [f"v{i}" for i in excluded])
+    expected = {
+        v
+        for v, pts in sent.items()
+        if pts.shape[0] and v != "v0" and int(v[1:]) not in removed | excluded | stale
+    }
+    assert sorted(names) == sorted(expected)
+
+    for name, end, width in zip(names, ends.tolist(), widths.tolist(), strict=True):
+        pts = sent[name]
+        want = [pts[0, 0], pts[0, 1], pts[-1, 0], pts[-1, 1]]
+        for got, exact in zip(end, want, strict=True):
+            # relative, and float32's subnormal spacing near 0 (the prefilter's 1e-6 m covers it)
+            assert abs(got - exact) <= ENDS_ROUNDING * abs(exact) + 1e-44
+        assert width == pytest.approx(1.0 + 0.1 * int(name[1:]))

@@ -482,3 +482,61 @@ def test_curve_caps_of_a_circle_are_its_radius_or_slower(
     true = math.sqrt(2.0 * radius)
     assert np.all(caps <= true * (1.03 if quantised else 1 + 1e-9))
     assert np.all(caps >= 0.9 * true)
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    base=st.tuples(st.floats(-9.9e6, 9.9e6), st.floats(-9.9e6, 9.9e6)),
+    others=st.lists(
+        st.tuples(
+            st.floats(-3.0, 3.0),  # along this car's path from the box's middle [m]
+            st.floats(-2.0, 2.0),  # beyond the lane reach, sideways [m]
+            st.sampled_from([-1.0, 1.0]),  # left or right of the path
+            st.floats(0.5, 3.0),  # width [m]
+            st.booleans(),  # the first point near, else the last
+        ),
+        min_size=1,
+        max_size=8,
+    ),
+    both=st.booleans(),
+)
+def test_lane_prefilter_keeps_every_car_near_the_path(
+    base: tuple[float, float],
+    others: list[tuple[float, float, float, float, bool]],
+    both: bool,
+) -> None:
+    """The lane searches' vectorised prefilter (float32 ends, issue 14) drops no car whose
+    path's first (and, for ``stop_limit``, last) point is within its lane reach of the
+    box around this car's path, even far from the origin where float32 rounds by up to a
+    metre, and keeps none that the exact test puts beyond it by more than that rounding.
+    Ends are placed near the reach's edge, where the rounding decides."""
+    bx, by = base
+    own = straight((bx - 3.0, by), 0.0, 1.0, 0.0, n=8, horizon=6.0)  # along y = by
+    path = ap("Q", own, 1.0, 0.0)
+    vm = VelocityManager(config())
+    tr = velocity._track(path, vm.limits_of(path), 0.0, 10.0)
+    table = ReservationTable(2.8, 1.0, 0.5)
+    y_lo, y_hi = float(tr.xy[:, 1].min()), float(tr.xy[:, 1].max())
+    placed = []
+    for i, (along, beyond, side, width, first_near) in enumerate(others):
+        lane = 0.5 * (1.8 + width) + 0.5
+        edge = y_hi + lane + beyond if side > 0 else y_lo - lane - beyond
+        near, away = (bx + along, edge), (bx + along, edge + side * (1.0 + abs(beyond)))
+        ends = (near, near) if first_near else (away, near)
+        pts = np.array([[*ends[0], 0.0], [*ends[1], 1.0]])
+        table.update(f"o{i}", pts, 0.0, (4.5, width))
+        placed.append((pts, lane))
+    got = {e.vehicle for e, _ in velocity._near_lane("Q", tr, 0.0, table, (), both_ends=both)}
+    x_lo, x_hi = float(tr.xy[:, 0].min()), float(tr.xy[:, 0].max())
+
+    def gap(x: float, y: float) -> float:
+        return math.hypot(max(x_lo - x, x - x_hi, 0.0), max(y_lo - y, y - y_hi, 0.0))
+
+    rounding = 4.0 * 2.0**-24 * (abs(bx) + abs(by) + 16.0) + 1e-6
+    for i, (pts, lane) in enumerate(placed):
+        tested = pts if both else pts[:1]
+        worst = max(gap(float(x), float(y)) for x, y, _ in tested)
+        if worst <= lane:
+            assert f"o{i}" in got
+        elif worst > lane + rounding:
+            assert f"o{i}" not in got
