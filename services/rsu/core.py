@@ -1141,13 +1141,14 @@ class RsuCore:
         the same way (within ``SAME_WAY_RAD``)."""
         if car_points.shape[0] < 2:
             return False
-        s_lead, off, i = paths.project(car_points, lead.x, lead.y)
-        if off > 0.5 * (car.width + lead.width) + LANE_SLACK_M:
+        reach = 0.5 * (car.width + lead.width) + LANE_SLACK_M
+        if paths.beyond(paths.bounds(car_points), lead.x, lead.y, reach):
+            return False  # nowhere near the path (issue 14: the projections cost)
+        where = np.array([[lead.x, lead.y], [car.x, car.y]])
+        s, off, i = paths.project_many(car_points, where)
+        if float(off[0]) > reach or float(s[0]) <= float(s[1]):
             return False
-        s_car, _, _ = paths.project(car_points, car.x, car.y)
-        if s_lead <= s_car:
-            return False
-        heading = paths.heading_of(car_points, i)
+        heading = paths.heading_of(car_points, int(i[0]))
         return heading is not None and math.cos(lead.heading - heading) >= math.cos(SAME_WAY_RAD)
 
     def _fast_plan(self, now: float, car: _Car, path: VehiclePath) -> SpeedPlan | None:

@@ -235,6 +235,28 @@ def retime(points: FloatArray, speeds: FloatArray, t0: float) -> FloatArray:
     return out
 
 
+def bounds(xy: FloatArray) -> tuple[float, float, float, float]:
+    """x0, x1, y0, y1 [m] of the points ``xy`` (M >= 1, 2+ columns)."""
+    x, y = xy[:, 0], xy[:, 1]
+    return float(x.min()), float(x.max()), float(y.min()), float(y.max())
+
+
+def beyond(
+    box: tuple[float, float, float, float],
+    x: FloatArray | float,
+    y: FloatArray | float,
+    reach: FloatArray | float,
+) -> BoolArray:
+    """Per point, (x, y) is farther than ``reach`` [m] from the box (:func:`bounds`), so
+    from any point of a polyline inside it: :func:`project` would find it farther too (a
+    cheap test before it; the slack is far above float rounding). Issue 14: the
+    projections were the RSU's cost."""
+    dx = np.maximum(np.maximum(box[0] - x, np.subtract(x, box[1])), 0.0)
+    dy = np.maximum(np.maximum(box[2] - y, np.subtract(y, box[3])), 0.0)
+    out: BoolArray = dx * dx + dy * dy > np.square(np.add(reach, 1e-6))
+    return out
+
+
 def project(xy: FloatArray, x: float, y: float) -> tuple[float, float, int]:
     """Where the point (x, y) [m] projects on the polyline ``xy`` (M >= 2, 2+ columns):
     (arc length [m], distance from the line [m], index of the segment's first point).
@@ -281,6 +303,23 @@ def heading_of(xy: FloatArray, index: int) -> float | None:
         return None
     j = int(moving[np.argmin(np.abs(moving - index))])
     return math.atan2(float(seg[j, 1]), float(seg[j, 0]))
+
+
+def headings_at(xy: FloatArray, index: npt.NDArray[np.int64]) -> FloatArray:
+    """:func:`heading_of` for every segment index in ``index`` at once [rad]; NaN for a
+    polyline that never moves (issue 14: one call per car ahead was a tenth of a stop)."""
+    pts = np.asarray(xy, dtype=np.float64)[:, :2]
+    seg = np.diff(pts, axis=0)
+    moving = np.flatnonzero(np.hypot(seg[:, 0], seg[:, 1]) > _EPS)
+    if moving.size == 0:
+        return np.full(index.shape[0], np.nan)
+    # the nearest moving segment, the earlier one on a tie (as heading_of's argmin)
+    pos = np.searchsorted(moving, index)
+    lo = moving[np.maximum(pos - 1, 0)]
+    hi = moving[np.minimum(pos, moving.size - 1)]
+    j = np.where(np.abs(index - lo) <= np.abs(hi - index), lo, hi)
+    out: FloatArray = np.arctan2(seg[j, 1], seg[j, 0])
+    return out
 
 
 def zone_span(points: FloatArray, polygon: ConvexZone | npt.ArrayLike) -> tuple[int, int] | None:

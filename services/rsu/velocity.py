@@ -79,7 +79,6 @@ from services.rsu.reservation import (
     ENDS_ROUNDING,
     LANE_SLACK_M,
     SAME_WAY_RAD,
-    BoolArray,
     Entry,
     ReservationTable,
     follow_distance,
@@ -221,25 +220,6 @@ def _segment_times(d: FloatArray, v: FloatArray) -> FloatArray:
     return dt
 
 
-def _box(xy: FloatArray) -> tuple[float, float, float, float]:
-    """x0, x1, y0, y1 [m] of the points ``xy`` (M >= 1)."""
-    x, y = xy[:, 0], xy[:, 1]
-    return float(x.min()), float(x.max()), float(y.min()), float(y.max())
-
-
-def _beyond(
-    box: tuple[float, float, float, float], x: FloatArray, y: FloatArray, reach: FloatArray
-) -> BoolArray:
-    """Per point, (x, y) is farther than ``reach`` [m] from the box, so from any point of
-    a polyline inside it: ``paths.project`` would find it farther too (a cheap test before
-    it; the slack is far above float rounding). Issue 14: the projections were the RSU's
-    cost."""
-    dx = np.maximum(np.maximum(box[0] - x, x - box[1]), 0.0)
-    dy = np.maximum(np.maximum(box[2] - y, y - box[3]), 0.0)
-    out: BoolArray = dx * dx + dy * dy > (reach + 1e-6) ** 2
-    return out
-
-
 def _near_lane(
     vehicle: str,
     tr: _Track,
@@ -258,13 +238,13 @@ def _near_lane(
     names, ends, widths = table.path_ends(vehicle, now, exclude)
     if not names:
         return []
-    box = _box(tr.xy)
+    box = paths.bounds(tr.xy)
     lane = 0.5 * (tr.width + widths) + LANE_SLACK_M
     # widened by the ends' rounding (sqrt(2) x ENDS_ROUNDING x the larger coordinate, at most)
     slack = 2.0 * ENDS_ROUNDING * np.abs(ends)
-    far = _beyond(box, ends[:, 0], ends[:, 1], lane + slack[:, 0] + slack[:, 1])
+    far = paths.beyond(box, ends[:, 0], ends[:, 1], lane + slack[:, 0] + slack[:, 1])
     if both_ends:
-        far |= _beyond(box, ends[:, 2], ends[:, 3], lane + slack[:, 2] + slack[:, 3])
+        far |= paths.beyond(box, ends[:, 2], ends[:, 3], lane + slack[:, 2] + slack[:, 3])
     out: list[tuple[Entry, float]] = []
     for k in np.flatnonzero(~far).tolist():
         entry = table.get(names[k])
@@ -597,14 +577,15 @@ class VelocityManager:
         # first and last points of every car near the lane projected at once (issue 14)
         ends = np.array([[e.points[0, :2], e.points[-1, :2]] for e, _ in near]).reshape(-1, 2)
         s_end, off_end, i_end = paths.project_many(tr.xy, ends)
+        mine_all = paths.headings_at(tr.xy, i_end[1::2])
         for k, (entry, lane) in enumerate(near):
             first = (float(s_end[2 * k]), float(off_end[2 * k]))
-            last = (float(s_end[2 * k + 1]), float(off_end[2 * k + 1]), int(i_end[2 * k + 1]))
+            last = (float(s_end[2 * k + 1]), float(off_end[2 * k + 1]))
             if first[1] > lane or last[1] > lane or first[0] <= 0.0:
                 continue  # not in this lane, or not ahead
             theirs = paths.heading_of(entry.points, entry.points.shape[0] - 1)
-            mine = paths.heading_of(tr.xy, last[2])
-            crossing = theirs is not None and mine is not None
+            mine = float(mine_all[k])
+            crossing = theirs is not None and not math.isnan(mine)
             if crossing and math.cos(theirs - mine) < math.cos(SAME_WAY_RAD):  # type: ignore[operator]
                 continue  # it ends crossing or leaving this lane
             gap = follow_distance(tr.length, entry.length, table.follow_gap_m) + _STOP_SLACK_M

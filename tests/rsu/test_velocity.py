@@ -540,3 +540,33 @@ def test_lane_prefilter_keeps_every_car_near_the_path(
             assert f"o{i}" in got
         elif worst > lane + rounding:
             assert f"o{i}" not in got
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    steps=st.lists(
+        st.tuples(
+            st.sampled_from([0.0, 1e-9, 0.5, 2.0]),  # step length [m] (repeats, tiny ones)
+            st.floats(-math.pi, math.pi),
+        ),
+        min_size=1,
+        max_size=12,
+    ),
+    index=st.lists(st.integers(-3, 15), min_size=1, max_size=6),
+)
+def test_headings_at_is_heading_of_for_every_index(
+    steps: list[tuple[float, float]], index: list[int]
+) -> None:
+    """The batched heading lookup of ``stop_limit`` answers as ``heading_of`` does, for
+    every index (ties between two moving segments go to the earlier, no moving segment
+    gives NaN for None), on polylines with repeated and near-repeated points."""
+    xy = np.zeros((len(steps) + 1, 2))
+    for k, (length, angle) in enumerate(steps):
+        xy[k + 1] = xy[k] + length * np.array([math.cos(angle), math.sin(angle)])
+    got = paths.headings_at(xy, np.array(index, dtype=np.int64))
+    for i, h in zip(index, got.tolist(), strict=True):
+        want = paths.heading_of(xy, i)
+        if want is None:
+            assert math.isnan(h)
+        else:
+            assert h == want
