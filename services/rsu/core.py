@@ -1142,7 +1142,7 @@ class RsuCore:
         if car_points.shape[0] < 2:
             return False
         reach = 0.5 * (car.width + lead.width) + LANE_SLACK_M
-        if paths.beyond(paths.bounds(car_points), lead.x, lead.y, reach):
+        if paths.farther_than(car_points, lead.x, lead.y, reach):
             return False  # nowhere near the path (issue 14: the projections cost)
         where = np.array([[lead.x, lead.y], [car.x, car.y]])
         s, off, i = paths.project_many(car_points, where)

@@ -257,6 +257,16 @@ def beyond(
     return out
 
 
+def farther_than(xy: FloatArray, x: float, y: float, reach: float) -> bool:
+    """(x, y) is farther than ``reach`` [m] from the polyline ``xy`` (M >= 1, 2+
+    columns), as :func:`project` measures it: its nearest vertex, less half the longest
+    segment (a foot on a segment is within half its length of one of its ends), is. A
+    cheap test before projecting (issue 14)."""
+    d = np.hypot(xy[:, 0] - x, xy[:, 1] - y)
+    half = 0.5 * float(segment_lengths(xy).max())
+    return float(d.min()) - half > reach + 1e-6
+
+
 def project(xy: FloatArray, x: float, y: float) -> tuple[float, float, int]:
     """Where the point (x, y) [m] projects on the polyline ``xy`` (M >= 2, 2+ columns):
     (arc length [m], distance from the line [m], index of the segment's first point).
@@ -318,8 +328,9 @@ def headings_at(xy: FloatArray, index: npt.NDArray[np.int64]) -> FloatArray:
     lo = moving[np.maximum(pos - 1, 0)]
     hi = moving[np.minimum(pos, moving.size - 1)]
     j = np.where(np.abs(index - lo) <= np.abs(hi - index), lo, hi)
-    out: FloatArray = np.arctan2(seg[j, 1], seg[j, 0])
-    return out
+    # math.atan2, as heading_of: numpy's arctan2 differs from it in the last bit at times
+    rise, run = seg[j, 1].tolist(), seg[j, 0].tolist()
+    return np.array([math.atan2(a, b) for a, b in zip(rise, run, strict=True)], dtype=np.float64)
 
 
 def zone_span(points: FloatArray, polygon: ConvexZone | npt.ArrayLike) -> tuple[int, int] | None:

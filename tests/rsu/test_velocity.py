@@ -570,3 +570,36 @@ def test_headings_at_is_heading_of_for_every_index(
             assert math.isnan(h)
         else:
             assert h == want
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    steps=st.lists(
+        st.tuples(st.sampled_from([0.0, 1e-9, 0.3, 2.0, 9.0]), st.floats(-math.pi, math.pi)),
+        min_size=0,
+        max_size=10,
+    ),
+    near=st.tuples(st.integers(0, 9), st.floats(0.0, 1.0), st.floats(-12.0, 12.0)),
+    reach=st.floats(0.0, 10.0),
+)
+def test_farther_than_never_drops_a_point_project_finds_within_reach(
+    steps: list[tuple[float, float]], near: tuple[int, float, float], reach: float
+) -> None:
+    """The cheap test before ``_ahead_in_lane``'s projection says "farther" only when
+    ``project`` finds the point farther than ``reach`` from the polyline too. Points are
+    placed beside a segment (which one, how far along, how far sideways), where the
+    vertex bound is tightest."""
+    xy = np.zeros((len(steps) + 1, 2))
+    for k, (length, angle) in enumerate(steps):
+        xy[k + 1] = xy[k] + length * np.array([math.cos(angle), math.sin(angle)])
+    if xy.shape[0] < 2:
+        xy = np.vstack([xy, xy])
+    k, along, side = near
+    a, b = xy[min(k, xy.shape[0] - 2)], xy[min(k, xy.shape[0] - 2) + 1]
+    step = b - a
+    norm = float(np.hypot(*step))
+    perp = np.array([-step[1], step[0]]) / norm if norm > 0 else np.array([0.0, 1.0])
+    point = a + along * step + side * perp
+    _, dist, _ = paths.project(xy, float(point[0]), float(point[1]))
+    if paths.farther_than(xy, float(point[0]), float(point[1]), reach):
+        assert dist > reach
