@@ -168,6 +168,27 @@ against demand"). Three mechanisms, each seen in a log of the RSU's mode changes
   into sw-2's turn), and once sw-2 stood ``C_FAST`` with its plan at rest, ne-2 was promoted
   too: both stand ``C_FAST``, each sensing the other. What both need is to see a crossing
   ``C_FAST`` car's way beyond where its reservation ends behind its leader.
+* Two opposing left turners that each wait in the box's edge (open, 6 Dec). ``slot``,
+  800 veh/h, seed 6 (50 of 67 finished): sw-0, ``C_FAST``, is stopped by its own planner
+  with its nose 1.2 m into the zone, waiting for the opposing straight car ns-11; ne-1,
+  ``C_FAST`` right behind ns-11, is a left turner too. Both reservations end at rest
+  short of their turns (sw-0's for ns-11, ne-1's a follow distance behind ns-11), so the
+  RSU first sees their crossing at 126.05 s, when sw-0's nose is in and ne-1 is 4.61 m
+  out at 5.08 m/s, 0.14 m too close to keep out braking hard after its reaction. Rule 7's
+  ``_stop_clears`` then weighs sw-0's stop against ne-1's *truncated* reservation, finds
+  it clear and demotes sw-0; ne-1 enters 0.45 m, and each ends in the other's turn.
+  Again the RSU lacks each car's way beyond where its path rests: a future path shows
+  the planned trajectory, not the intended one (a maneuver-coordination message carries
+  both), and without the intended turn no rule here can order the pair in time.
+
+Tried and dropped (6 Dec): don't queue into the box. A car that could still keep out
+was held short when its path rested with its body in the zone within ``HELD_REACH_M``
+behind the rest of a car ahead whose reserved path rested (the same way, within
+``SAME_WAY_RAD``), a queue through the box. It never fired for the pair above (sw-0
+waits for a crossing car, not a queue: its leader rests 10.9 m ahead); without the
+heading test it fired elsewhere and seed 6 went to 63 of 67 by chance, and with it the
+turning runs moved within noise (600 veh/h, seeds 0-4: paper 29.4 -> 29.2 s, slot 31.0 ->
+31.7 s, the same cars finished within one) while ``paper`` at 800 veh/h finished fewer.
 
 Status: the property holds for both policies in the derandomized examples and for the two
 cases random search once found under ``paper`` (``FOUND_BY_SEARCH``: the follow rule's lane
