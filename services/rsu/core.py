@@ -190,6 +190,13 @@ heading test it fired elsewhere and seed 6 went to 63 of 67 by chance, and with 
 turning runs moved within noise (600 veh/h, seeds 0-4: paper 29.4 -> 29.2 s, slot 31.0 ->
 31.7 s, the same cars finished within one) while ``paper`` at 800 veh/h finished fewer.
 
+Tried and dropped (6 Dec, later): no stop clears a path that ends at rest. For the lock
+above, ``_stop_clears`` weighed sw-0's stop against ne-1's reservation, which ends at
+rest short of ne-1's turn and so hides it; returning ``False`` whenever the other path
+ends at rest brought back the collision rule 1 was made for (600 veh/h,
+``paper``, seed 1: 26 of 44 finished, one collision), whose two reservations both ended
+at rest behind their leaders.
+
 Status: the property holds for both policies in the derandomized examples and for the two
 cases random search once found under ``paper`` (``FOUND_BY_SEARCH``: the follow rule's lane
 was measured across the asking car's heading only; ``FOUND_BY_SEARCH_TURN``: a stop that
