@@ -861,8 +861,9 @@ class RsuCore:
 
     def _front_gap(self, car: _Car, points: FloatArray | None = None) -> float | None:
         """How far the car's front is from the zone along ``points`` (default: its table
-        entry) [m]: 0 when its centre or front is in the zone, None when the path does not
-        reach the zone."""
+        entry) [m]: 0 when its centre or front is in the zone; a path whose centre stops
+        short is measured by its front (:meth:`_nose_gap`: its nose may still end in the
+        zone); None when not even the front reaches the zone."""
         if self._zone.contains_point(car.x, car.y) or self._nose_in_zone(car):
             return 0.0
         half = 0.5 * car.length
@@ -873,7 +874,7 @@ class RsuCore:
             points = entry.points
         span = paths.zone_span(points, self._zone)
         if span is None:
-            return None
+            return self._nose_gap(car, points)
         s = paths.arc_length(points)
         # from the point of the path nearest the car now (an entry may be older than now)
         xy = points[: span[0] + 1, :2]
@@ -1081,8 +1082,8 @@ class RsuCore:
 
     def _nose_gap(self, car: _Car, points: FloatArray) -> float | None:
         """How far [m] ``car``'s front is from the zone along ``points``, continued straight
-        past their end (a path whose centre stops short may still take the front in, where
-        :meth:`_front_gap` sees no zone); None when the front never reaches it."""
+        past their end (a path whose centre stops short may still take the front in);
+        None when the front never reaches it."""
         half = 0.5 * car.length
         s = paths.arc_length(points)
         s_zone = paths.zone_entry_s(points[:, :2], s, self._zone, half)
