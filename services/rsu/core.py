@@ -213,7 +213,10 @@ prevented; the property test starts every car where it can still stop. The one
 exception: of two committed cars, one that can still keep its body out of the zone
 braking at ``HARD_STOP_FACTOR`` times its comfortable deceleration, after
 ``REACTION_S`` at its speed (the command's way and the actuator's lag), yields to one
-that cannot (``_stops_short``, ``tests/rsu/test_issue12_causes.py`` cause 9). A slot
+that cannot (``_stops_short``, ``tests/rsu/test_issue12_causes.py`` cause 9); a car
+whose front is in the zone cannot, standing or not, and of two that cannot whose stops do
+not settle it, the one whose centre is still outside yields (cause 11: a turner standing
+mid-turn yielded to the car at the box's edge that waited for it, for good). A slot
 takes a ``C_SLOW`` car into the zone as a ``C_FAST`` path does: of two cars neither of
 which can keep out, the later arriver yields, slot or not (cause 9). A ``C_FAST`` car
 whose new plan jumped earlier (the car ahead it was retimed behind has gone) and would
@@ -856,6 +859,12 @@ class RsuCore:
             return car.held_short
         if gap is None:
             return True
+        if gap <= 0.0:
+            # its front is in the zone already: standing still does not keep it out (a
+            # turner at rest mid-turn counted as "stops short" and yielded to the car at
+            # the box's edge that waited for it, for good: demand experiment, turning,
+            # slot, 800 veh/h, seed 8)
+            return False
         room = gap - car.speed * REACTION_S  # it drives on this long before it brakes
         return car.speed * car.speed <= 2.0 * HARD_STOP_FACTOR * self._decel(car) * room
 
@@ -1104,7 +1113,8 @@ class RsuCore:
         A car that can no longer stop before the zone never yields to one that can; of two
         that cannot, one that still can braking hard (:meth:`_stops_short`) yields to one
         that cannot even so, and of two that cannot even so, one whose stop stands clear
-        of the other's way (:meth:`_stop_clears`) yields to one whose stop does not. Then
+        of the other's way (:meth:`_stop_clears`) yields to one whose stop does not, and
+        else one whose centre is still outside the zone to one whose centre is in it. Then
         (issue 12, cause 3): a ``C_SLOW`` car's entry is already its stop (or slot) path,
         the most it can give, so whoever conflicts with it yields, ``C_FAST`` too; a
         ``C_FAST`` car has priority over an ``AUTO`` one; between two ``C_FAST`` cars
@@ -1138,6 +1148,15 @@ class RsuCore:
                 car_clear = self._stop_clears(now, car, other, other_entry.points)
                 if car_clear != self._stop_clears(now, other, car, car_points):
                     return car_clear
+            if not car_short:
+                # Neither can, and neither's stop settles it: the car whose centre is in
+                # the zone goes first, as the one at its edge cannot pass it (same run: a
+                # left turner standing mid-turn yielded to a C_SLOW left turner from
+                # across with only its nose in, which waited for it; the RSU re-stopped
+                # it every time it moved off, for 60 s)
+                car_in = self._zone.contains_point(car.x, car.y)
+                if car_in != self._zone.contains_point(other.x, other.y):
+                    return not car_in
         fast, slow = Mode.C_FAST, Mode.C_SLOW
         if other.mode == slow:
             if other.kind in _SLOT_KINDS and not self._short_at(car, car_gap):

@@ -1051,3 +1051,68 @@ def test_cause10_no_release_past_a_held_body_touches_it(
         assert not convex_overlap(
             w_body, footprint(float(x), float(y), NORTH, 4.5 + grow, 1.8 + grow)
         )
+
+
+def _standing_pair(
+    t_theta: float, t_v: float, e_nose_in: float, e_mode: Mode
+) -> tuple[RsuCore, rsu_core._Car, rsu_core._Car]:
+    """T, a left turner from the south (:func:`left_turn`), ``t_theta`` [rad] into its
+    turn, in the zone, at ``t_v`` [m/s] (0: standing) on its own path; E eastbound from
+    the west, standing with its nose ``e_nose_in`` [m] into the zone and its centre out,
+    in ``e_mode``."""
+    core = RsuCore(config(Policy.SLOT), listen_s=0.0)
+    radius = 5.25
+    tx, ty = -3.5 + radius * math.cos(t_theta), -3.5 + radius * math.sin(t_theta)
+    heading = t_theta + math.pi / 2
+    arc = left_turn(-3.5 - 1e-6, max(t_v, 0.5), 0.0)
+    start = int(np.argmin(np.hypot(arc[:, 0] - tx, arc[:, 1] - ty)))
+    t_pts = held(tx, ty, 0.0) if t_v == 0.0 else arc[start:] - [0.0, 0.0, arc[start, 2]]
+    t = rsu_core._Car("T", mode=Mode.AUTO, x=tx, y=ty, heading=heading, speed=t_v)
+    t.autonomous = message(AutonomousPath, "T", t_pts, t_v, heading, Mode.AUTO)
+    ex = -3.5 + e_nose_in - 2.25
+    e_pts = held(ex, -1.75, 0.0)
+    e = rsu_core._Car("E", mode=e_mode, x=ex, y=-1.75, heading=EAST, speed=0.0)
+    e.autonomous = message(AutonomousPath, "E", e_pts, 0.0, EAST, e_mode)
+    if e_mode == Mode.C_SLOW:
+        e.kind = "stop"
+    for car, pts in ((t, t_pts), (e, e_pts)):
+        core._cars[car.vehicle] = car
+        core.table.update(car.vehicle, pts, 0.0)
+    return core, t, e
+
+
+@pytest.mark.parametrize("t_v", [0.0, 0.3])
+def test_cause11_a_car_standing_in_the_zone_does_not_stop_short(t_v: float) -> None:
+    """A car whose front is in the zone cannot keep its body out of it, standing or
+    moving off: it does not "stop short" (standing, it did, and so yielded to any car
+    that could not: demand experiment, turning, slot, 800 veh/h, seed 8)."""
+    core, t, e = _standing_pair(0.6, t_v, 0.5, Mode.AUTO)
+    assert core._committed(t) and core._committed(e)
+    assert not core._stops_short(t) and not core._stops_short(e)
+
+
+@settings(max_examples=120, deadline=None)
+@given(
+    t_theta=st.floats(0.25, 1.3),
+    t_v=st.sampled_from([0.0, 0.05, 0.3, 1.0]),
+    e_nose_in=st.floats(0.01, 2.2),
+    e_mode=st.sampled_from([Mode.AUTO, Mode.C_SLOW, Mode.C_FAST]),
+)
+def test_cause11_a_car_in_the_zone_never_yields_to_one_at_its_edge(
+    t_theta: float, t_v: float, e_nose_in: float, e_mode: Mode
+) -> None:
+    """Wherever T stands or moves off in its turn and however far E's nose is in: when
+    neither can keep out of the zone and neither's stop settles it (both clear the
+    other's way, or neither does), E, whose centre is outside, yields, and T does not.
+    Before, a C_SLOW E, waiting for T's body, kept the way, and T was re-stopped each
+    time it moved off (the same run: 15 of 48 cars never through)."""
+    core, t, e = _standing_pair(t_theta, t_v, e_nose_in, e_mode)
+    t_path = core.table.get("T").points  # type: ignore[union-attr]
+    e_path = core.table.get("E").points  # type: ignore[union-attr]
+    assume(not core._ahead_in_lane(e, t, t_path) and not core._ahead_in_lane(t, e, e_path))
+    assume(not core._stops_short(e))  # a C_SLOW E held short would rightly keep its way
+    assert core._committed(t) and core._committed(e) and not core._stops_short(t)
+    t_clear = core._stop_clears(0.0, t, e, e_path)
+    assume(t_clear == core._stop_clears(0.0, e, t, t_path))
+    assert core._yields(0.0, e, e_path, t)
+    assert not core._yields(0.0, t, t_path, e)
