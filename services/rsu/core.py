@@ -197,6 +197,16 @@ ends at rest brought back the collision rule 1 was made for (600 veh/h,
 ``paper``, seed 1: 26 of 44 finished, one collision), whose two reservations both ended
 at rest behind their leaders.
 
+Tried and dropped (6 Dec, night): a path whose centre stops short measured by its front.
+``_front_gap`` is None when the centre's path never enters the zone, even when the path
+ends at rest with the car's nose in it; measuring such a car by its front
+(``_nose_gap``) made it committed, and so gave it the way. On the turning grids (60 s of
+demand, 120 s to clear, finished of inserted): 600 veh/h seeds 0-4, paper 180 -> 187 of
+201, slot 198 -> 199; 800 veh/h seeds 5-9, slot 196 -> 213, paper 218 -> 183 of 245; and
+600 veh/h seeds 5-9, paper, every car -> 155 of 169. The losses were the opposing-left-
+turner lock above (paper, 800, seed 8 at 56 s; 600, seed 9): cars with their noses in
+the box kept the way and more of them entered it at once.
+
 Status: the property holds for both policies in the derandomized examples and for the two
 cases random search once found under ``paper`` (``FOUND_BY_SEARCH``: the follow rule's lane
 was measured across the asking car's heading only; ``FOUND_BY_SEARCH_TURN``: a stop that
@@ -863,16 +873,16 @@ class RsuCore:
             # its front is in the zone already: standing still does not keep it out (a
             # turner at rest mid-turn counted as "stops short" and yielded to the car at
             # the box's edge that waited for it, for good: demand experiment, turning,
-            # slot, 800 veh/h, seed 8)
+            # slot, 800 veh/h, seed 8, with a front-gap rule since dropped; see the
+            # module docstring)
             return False
         room = gap - car.speed * REACTION_S  # it drives on this long before it brakes
         return car.speed * car.speed <= 2.0 * HARD_STOP_FACTOR * self._decel(car) * room
 
     def _front_gap(self, car: _Car, points: FloatArray | None = None) -> float | None:
         """How far the car's front is from the zone along ``points`` (default: its table
-        entry) [m]: 0 when its centre or front is in the zone; a path whose centre stops
-        short is measured by its front (:meth:`_nose_gap`: its nose may still end in the
-        zone); None when not even the front reaches the zone."""
+        entry) [m]: 0 when its centre or front is in the zone, None when the path does not
+        reach the zone."""
         if self._zone.contains_point(car.x, car.y) or self._nose_in_zone(car):
             return 0.0
         half = 0.5 * car.length
@@ -883,7 +893,7 @@ class RsuCore:
             points = entry.points
         span = paths.zone_span(points, self._zone)
         if span is None:
-            return self._nose_gap(car, points)
+            return None
         s = paths.arc_length(points)
         # from the point of the path nearest the car now (an entry may be older than now)
         xy = points[: span[0] + 1, :2]
@@ -1091,8 +1101,8 @@ class RsuCore:
 
     def _nose_gap(self, car: _Car, points: FloatArray) -> float | None:
         """How far [m] ``car``'s front is from the zone along ``points``, continued straight
-        past their end (a path whose centre stops short may still take the front in);
-        None when the front never reaches it."""
+        past their end (a path whose centre stops short may still take the front in, where
+        :meth:`_front_gap` sees no zone); None when the front never reaches it."""
         half = 0.5 * car.length
         s = paths.arc_length(points)
         s_zone = paths.zone_entry_s(points[:, :2], s, self._zone, half)
@@ -1150,7 +1160,7 @@ class RsuCore:
                     return car_clear
             if not car_short:
                 # Neither can, and neither's stop settles it: the car whose centre is in
-                # the zone goes first, as the one at its edge cannot pass it (same run: a
+                # the zone goes first, as the one at its edge cannot pass it (that run: a
                 # left turner standing mid-turn yielded to a C_SLOW left turner from
                 # across with only its nose in, which waited for it; the RSU re-stopped
                 # it every time it moved off, for 60 s)
