@@ -373,6 +373,17 @@ class MonitorService(DaemonBase[MonitorConfig]):
         """Why the run failed, if it did."""
         return self.core.failure or self.veto
 
+    def presence(self) -> list[str]:
+        """Per expected actor not yet present, which half of presence it lacks (a run that
+        never started: is the daemon unreachable, or unable to sign?)."""
+        out = []
+        for node in sorted(self.expected):
+            if node not in self.tokens:
+                out.append(f"{node}: no liveliness token (not running, or not connected)")
+            elif self.shell.plumbing_auth is not None and node not in self.heard:
+                out.append(f"{node}: liveliness token up, no signed stats report since")
+        return out
+
     def unheard_rsus(self) -> list[str]:
         """RSUs of this ``rsu``-mode run that no car reported hearing (``rsus_heard`` in
         the cars' stats, ``services.daemons.vehicle``).
@@ -480,6 +491,9 @@ class MonitorService(DaemonBase[MonitorConfig]):
             if self.failure is not None:
                 self.exit_code = 1
                 log.error("run failed: %s", self.failure)
+                if self.start is None:
+                    for line in self.presence():
+                        log.error("presence: %s", line)
         try:
             if self.start is None:
                 return

@@ -386,6 +386,17 @@ def tail_log(path: Path, lines: int = TAIL_LINES) -> str:
     return "\n".join(text.splitlines()[-lines:])
 
 
+def absent_actors(monitor_log: str) -> set[str]:
+    """The actors a failed monitor's log names in its ``presence:`` lines (a run that never
+    started: ``services.daemons.monitor``)."""
+    found = set()
+    for line in monitor_log.splitlines():
+        _, sep, rest = line.partition(" presence: ")
+        if sep:
+            found.add(rest.partition(":")[0].strip())
+    return found
+
+
 @dataclass(slots=True)
 class Child:
     """One started daemon."""
@@ -551,15 +562,19 @@ class Launcher:
             time.sleep(0.05)
 
     def failed_children(self, monitor_code: int | None) -> list[Child]:
-        """Children whose log is worth showing: a non-zero exit, or the monitor of a failed run."""
+        """Children whose log is worth showing: a non-zero exit, the monitor of a failed run,
+        and the actors that monitor names as never present (its ``presence:`` lines)."""
         out = []
+        absent: set[str] = set()
         for child in self.children.values():
             rc = child.process.returncode
             if child.node == self.monitor:
                 if monitor_code != 0:
                     out.append(child)
+                    absent = absent_actors(tail_log(child.log_path, 4 * TAIL_LINES))
             elif rc not in (0, None, -signal.SIGTERM):
                 out.append(child)
+        out += [c for c in self.children.values() if c.node in absent and c not in out]
         return out
 
 

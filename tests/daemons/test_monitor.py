@@ -125,6 +125,8 @@ async def test_monitor_fails_clearly_when_actors_are_missing() -> None:
     assert mon.exit_code == 1 and mon.result is None
     assert mon.failure is not None
     assert "actors not present after 0.3 s: B, rsu1" in mon.failure
+    assert [line.split(":")[0] for line in mon.presence()] == ["B", "rsu1"]
+    assert all("no liveliness token" in line for line in mon.presence())
     assert actors.starts == []
 
 

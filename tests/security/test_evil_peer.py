@@ -69,7 +69,7 @@ from services.edge.trust import Authority, rsu_grants
 from services.model.scenario import load_scenario
 from services.model.types import RunMode
 from services.sim.harness import SimOptions, simulate
-from services.supervise.launcher import prepare_up
+from services.supervise.launcher import absent_actors, prepare_up
 
 REPO = Path(__file__).resolve().parents[2]
 PAPER = REPO / "scenarios" / "paper-blind-intersection.toml"
@@ -328,6 +328,9 @@ def test_a_liveliness_token_and_forged_stats_cannot_stand_in_for_the_rsu(tmp_pat
     log = (tmp_path / "run" / "monitor.log").read_text()
     assert "actors not present after 5 s" in log
     assert "rsu1" in log.split("actors not present")[1]
+    # the diagnosis says which half of presence rsu1 lacks: its (forged) token was up
+    assert "presence: rsu1: liveliness token up, no signed stats report since" in log
+    assert absent_actors(log) == {"rsu1"}
     assert "unauthenticated (bad_certificate)" in log or "unauthenticated (bad_trailer)" in log
     assert "starting run" not in log
     for car in ("A", "B"):
