@@ -19,7 +19,10 @@ ids), ``flood_new_ids``. Per phase:
   of ``RsuCore.on_message`` and the sending of what it decided (the ``receive``
   section of the RSU's stats, ``services.edge.transport.ReceiveStats``);
 - ``tick_late_ms_max``: the largest lag of any actor's control-loop tick behind its due
-  time (``max_tick_lag_s``), and ``late_ticks`` (ticks more than a period late);
+  time (``max_tick_lag_s``), per actor in ``tick_late_ms_max_by_node``, the RSU's alone
+  in ``rsu_tick_late_ms_max`` (the issue's "its tick"), the p99 of each run's ticks
+  likewise (``tick_late_ms_p99_by_node``, ``rsu_tick_late_ms_p99``: the largest of the
+  runs' p99s), and ``late_ticks`` (ticks more than a period late);
 - ``memory_growth_pct``: per daemon, resident memory at the end of the phase against
   its start (median of the first and of the last :data:`RSS_WINDOW` samples, one every
   :data:`RSS_PERIOD_S`), and the largest of them;
@@ -358,6 +361,8 @@ def _summary(phase: _Phase, rsu: str) -> dict[str, Any]:
     results = phase.results
     p99s: list[float] = []
     lags: list[float] = []
+    by_node: dict[str, float] = {}
+    p99_by_node: dict[str, float] = {}
     late = 0
     dropped = {"refused": 0, "rate_limited": 0, "overflow": 0}
     passing: dict[str, list[float]] = {}
@@ -368,6 +373,10 @@ def _summary(phase: _Phase, rsu: str) -> dict[str, Any]:
             lag = data.get("max_tick_lag_s")
             if isinstance(lag, int | float):
                 lags.append(float(lag))
+                by_node[node] = max(by_node.get(node, 0.0), float(lag))
+            lag_p99 = data.get("tick_lag_s_p99")
+            if isinstance(lag_p99, int | float):
+                p99_by_node[node] = max(p99_by_node.get(node, 0.0), float(lag_p99))
             late += int(data.get("late_ticks") or 0)
             receive = data.get("receive")
             if isinstance(receive, Mapping):
@@ -391,6 +400,10 @@ def _summary(phase: _Phase, rsu: str) -> dict[str, Any]:
         "all_finished": bool(results) and all(r.all_finished for r in results),
         "decision_ms_p99": max(p99s) if p99s else None,
         "tick_late_ms_max": round(max(lags) * 1e3, 2) if lags else None,
+        "tick_late_ms_max_by_node": {n: round(v * 1e3, 2) for n, v in sorted(by_node.items())},
+        "rsu_tick_late_ms_max": round(by_node[rsu] * 1e3, 2) if rsu in by_node else None,
+        "tick_late_ms_p99_by_node": {n: round(v * 1e3, 2) for n, v in sorted(p99_by_node.items())},
+        "rsu_tick_late_ms_p99": (round(p99_by_node[rsu] * 1e3, 2) if rsu in p99_by_node else None),
         "late_ticks": late,
         "memory_growth_pct": growth,
         "memory_growth_pct_max": max(known) if known else None,
@@ -541,9 +554,13 @@ def flood_section(
         "flood_decision_latency_ms_p99": worst("decision_ms_p99"),
         "flood_memory_growth_pct": worst("memory_growth_pct_max"),
         "flood_tick_late_ms_max": worst("tick_late_ms_max"),
+        "flood_rsu_tick_late_ms_max": worst("rsu_tick_late_ms_max"),
+        "flood_rsu_tick_late_ms_p99": worst("rsu_tick_late_ms_p99"),
         "baseline_decision_latency_ms_p99": base.get("decision_ms_p99"),
         "baseline_memory_growth_pct": base.get("memory_growth_pct_max"),
         "baseline_tick_late_ms_max": base.get("tick_late_ms_max"),
+        "baseline_rsu_tick_late_ms_max": base.get("rsu_tick_late_ms_max"),
+        "baseline_rsu_tick_late_ms_p99": base.get("rsu_tick_late_ms_p99"),
         "verified_fp_per_s": verify_throughput(),
         "flood": data,
     }

@@ -633,3 +633,24 @@ async def test_standalone_run_sends_no_v2x() -> None:
     assert result.network is not None and result.network.streams == {}
     assert result.network.total_kbps_per_vehicle == 0.0
     assert set(result.to_dict()["network"]) == {"total_kbps_per_vehicle"}
+
+
+async def test_the_stats_carry_the_ticks_p99_lag_beside_the_max_and_a_new_run_resets_them() -> None:
+    shell = DaemonShell(
+        config(VehicleDaemonConfig, node_id="B", scenario=str(PAPER)),
+        "test",
+        MemoryTransport(MemoryBus()),
+    )
+    await shell.open()
+    shell.begin_run("run-1", time.time(), 1.0)
+    lags = [0.001] * 199 + [0.004, 0.25]  # one stall sets the max, not the p99
+    for step, lag in enumerate(lags):
+        shell.on_tick(step * 0.05, step * 0.05 + lag, 0.05)
+    snapshot = shell.stats_report(final=False).snapshot
+    assert snapshot["max_tick_lag_s"] == 0.25 and snapshot["late_ticks"] == 1
+    assert 0.001 <= snapshot["tick_lag_s_p99"] < 0.005  # the 199th of 201 lags, bucketed
+    await shell.end_run(0.0)
+    shell.begin_run("run-2", time.time(), 1.0)
+    snapshot = shell.stats_report(final=False).snapshot
+    assert snapshot["max_tick_lag_s"] == 0.0 and "tick_lag_s_p99" not in snapshot
+    await shell.close()

@@ -1,13 +1,15 @@
 """A tiny service for the lifecycle tests, run as ``python -m tests.edge.service_helper``.
 
-``MODE`` (argv[1]) is ``cooperative`` (run returns when stop is set) or ``stubborn``
-(run ignores stop: only a forced exit ends it). Markers go to stdout, one per line,
-so the test can follow the service's steps; logs go to stderr.
+``MODE`` (argv[1]) is ``cooperative`` (run returns when stop is set), ``frozen`` (the
+same, first printing ``frozen <count>``: the objects ``gc.freeze`` holds as ``run``
+starts) or ``stubborn`` (run ignores stop: only a forced exit ends it). Markers go to
+stdout, one per line, so the test can follow the service's steps; logs go to stderr.
 """
 
 from __future__ import annotations
 
 import asyncio
+import gc
 import logging
 import sys
 
@@ -23,13 +25,16 @@ def mark(text: str) -> None:
 
 
 class HelperService:
-    def __init__(self, stubborn: bool) -> None:
-        self.stubborn = stubborn
+    def __init__(self, mode: str) -> None:
+        self.stubborn = mode == "stubborn"
+        self.frozen = mode == "frozen"
 
     async def startup(self) -> None:
         mark("startup")
 
     async def run(self, stop: asyncio.Event) -> None:
+        if self.frozen:
+            mark(f"frozen {gc.get_freeze_count()}")
         logger.info("running")
         mark("running")
         if self.stubborn:
@@ -52,7 +57,7 @@ class HelperService:
 
 def main() -> int:
     configure_logging("INFO", "helper-node")
-    return run_service(HelperService(stubborn=sys.argv[1] == "stubborn"))
+    return run_service(HelperService(sys.argv[1]))
 
 
 if __name__ == "__main__":

@@ -110,3 +110,13 @@ def test_real_daemons_under_a_flood_refuse_it_and_finish(tmp_path: Path) -> None
     assert flood["collisions"] == 0 and flood["all_finished"]
     assert flood["flood_sent"] > 1000 and flood["refused"] > 1000
     assert flood["overflow"] == 0  # the genuine traffic always found room
+    # every actor's tick lag, max and p99, and the RSU's own (issue 13's "its tick")
+    nodes = {"A", "B", "rsu1"}
+    assert set(flood["tick_late_ms_max_by_node"]) == set(flood["tick_late_ms_p99_by_node"]) == nodes
+    for node in nodes:
+        assert (
+            0 <= flood["tick_late_ms_p99_by_node"][node] <= flood["tick_late_ms_max_by_node"][node]
+        )
+    assert flood["rsu_tick_late_ms_max"] == flood["tick_late_ms_max_by_node"]["rsu1"]
+    assert flood["rsu_tick_late_ms_p99"] == flood["tick_late_ms_p99_by_node"]["rsu1"]
+    assert flood["tick_late_ms_max"] == max(flood["tick_late_ms_max_by_node"].values())
