@@ -789,13 +789,24 @@ class DaemonShell:
 
 
 async def wait_event(event: asyncio.Event, timeout: float) -> bool:
-    """Wait for ``event`` at most ``timeout`` wall seconds; whether it is set."""
+    """Wait for ``event`` at most ``timeout`` wall seconds; whether it is set.
+
+    The control loops' ticks sleep here, so a timeout must resume the caller in one loop
+    turn: ``asyncio.wait`` does (its timer wakes the caller directly), while
+    ``asyncio.wait_for`` first waits for the cancelled inner wait to finish, two more
+    turns, and each turn may first run a slice of received datagrams (up to a few ms at
+    the RSU: an RSU whose ticks fell due as the cars' paths arrived ran them 10-14 ms
+    late on a 2-core machine). The waiter on ``event`` is cancelled, not awaited.
+    """
     if event.is_set():
         return True
     if timeout <= 0:
         return False
-    with contextlib.suppress(TimeoutError):
-        await asyncio.wait_for(event.wait(), timeout)
+    waiter = asyncio.ensure_future(event.wait())
+    try:
+        await asyncio.wait((waiter,), timeout=timeout)
+    finally:
+        waiter.cancel()
     return event.is_set()
 
 

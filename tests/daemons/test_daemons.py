@@ -62,6 +62,7 @@ from services.edge.shell import (
     DaemonShell,
     RateLimitedLog,
     sleep_until,
+    wait_event,
 )
 from services.edge.transport import RELIABLE_QOS, MemoryBus, MemoryTransport
 from services.model.kinematics import TruthState
@@ -356,6 +357,20 @@ async def test_publish_counts_encoded_bytes_and_final_report() -> None:
     assert shell.run_id is None and shell.clock is None
     await shell.close()
     listener.close()
+
+
+async def test_wait_event_times_out_or_wakes_and_leaves_no_task_behind() -> None:
+    event = asyncio.Event()
+    before = asyncio.all_tasks()
+    t0 = time.monotonic()
+    assert await wait_event(event, 0.02) is False
+    assert 0.015 < time.monotonic() - t0 < 1.0
+    asyncio.get_running_loop().call_later(0.02, event.set)
+    assert await wait_event(event, 100.0) is True
+    assert time.monotonic() - t0 < 1.0
+    await asyncio.sleep(0)  # the cancelled waiters finish
+    assert asyncio.all_tasks() == before
+    assert await wait_event(event, 0.0) is True and await wait_event(asyncio.Event(), 0.0) is False
 
 
 async def test_sleep_until_returns_false_when_halted() -> None:
