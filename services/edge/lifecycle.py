@@ -109,11 +109,11 @@ def freeze_startup_objects() -> int:
     """Collect, then freeze what survives (:func:`gc.freeze`); the objects frozen.
 
     Why: a full collection walks every object the process holds, and after importing
-    numpy, pydantic, Zenoh and cryptography that takes 12-17 ms on a 2-core test machine,
-    at a moment the collector picks: a control tick due then is late by as much (issue 13's
-    tick lateness). The modules, the configuration and the sessions live until the process
-    ends anyway; frozen, no collection looks at them again, and a full collection costs
-    what the run itself keeps alive.
+    numpy, pydantic, Zenoh and cryptography (about 68 000 objects) it took 22-106 ms in
+    our daemons on a 2-core test machine, at a moment the collector picks: a control tick
+    due then is late by as much (issue 13's tick lateness). The modules, the configuration
+    and the sessions live until the process ends anyway; frozen, no collection looks at
+    them again, and a full collection costs what the run keeps alive (0.5-2 ms measured).
     """
     gc.collect()
     gc.freeze()
