@@ -335,6 +335,9 @@ class DaemonShell:
         self.tick_lags = LatencyHistogram()
         """Every tick's lag in this run [run s]: the stats carry its p99 beside the max (one
         stall of the machine sets the max; the p99 says how late the loop usually runs)."""
+        self.next_tick_s: float | None = None
+        """Run time of the control tick the daemon sleeps towards (None: none, or it ran):
+        the inboxes hold their datagrams back while it is due (``ReceivePolicy.tick_due``)."""
         self.fault: str | None = None
         """What failed first, once a handler raised."""
         self.faulted = asyncio.Event()
@@ -474,6 +477,7 @@ class DaemonShell:
         self.late_ticks = 0
         self.max_tick_lag_s = 0.0
         self.tick_lags = LatencyHistogram()
+        self.next_tick_s = None
         self.clock = RunClock(epoch_unix, speed, time_fn=self.time_fn)
         for label, policy in self.receive.items():
             policy.stats.reset()
@@ -488,6 +492,7 @@ class DaemonShell:
 
     async def end_run(self, drain_s: float = DRAIN_S) -> None:
         """Keep counting receptions for ``drain_s``, publish the final report, go idle."""
+        self.next_tick_s = None  # no more ticks: nothing to hold datagrams back for
         if self.run_id is None:
             return
         if drain_s > 0:
@@ -519,6 +524,13 @@ class DaemonShell:
         policy.certificates_only = self.trust is not None and self.clock is None
         return policy
 
+    def tick_due(self) -> float | None:
+        """The run time of the control tick that is due and has not run yet, else None."""
+        due, clock = self.next_tick_s, self.clock
+        if due is None or clock is None:
+            return None
+        return due if clock.now() >= due else None
+
     def now(self) -> float | None:
         """Run time now, or None when no run is active."""
         return None if self.clock is None else self.clock.now()
@@ -526,6 +538,7 @@ class DaemonShell:
     def on_tick(self, due_s: float, now_s: float, period_s: float) -> None:
         """A control-loop tick due at run time ``due_s`` ran at ``now_s`` [run s]; more
         than ``period_s`` behind counts in ``late_ticks``."""
+        self.next_tick_s = None
         lag = now_s - due_s
         if lag > period_s:
             self.late_ticks += 1
@@ -587,7 +600,9 @@ class DaemonShell:
 
         policy = self.receive.setdefault(
             str(stream),
-            self._v2x_limits(ReceivePolicy(admit=self._admits, dedupe=V2X_DEDUPE)),
+            self._v2x_limits(
+                ReceivePolicy(admit=self._admits, dedupe=V2X_DEDUPE, tick_due=self.tick_due)
+            ),
         )
         return self.transport.subscribe(keyexpr, on_datagram, policy)
 
@@ -740,6 +755,7 @@ class DaemonShell:
                 max_lanes=PLUMBING_LANES,
                 max_bytes=PLUMBING_BYTES,
                 admit=self._admits,
+                tick_due=self.tick_due,
             ),
         )
         return self.transport.subscribe(keyexpr, on_payload, policy)
@@ -1030,6 +1046,7 @@ class ActorDaemon(DaemonBase[C]):
         step = first
         while True:
             now = step * dt
+            self.shell.next_tick_s = now
             if not await sleep_until(clock, now, halt):
                 return
             if now > limit:

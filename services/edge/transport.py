@@ -312,8 +312,12 @@ class ReceivePolicy:
     datagrams that carry their signer's certificate are queued, the rest ``refused``
     (between runs a verifying daemon uses nothing else: it learns keys). The loop takes
     the lanes round robin, at most ``batch`` datagrams or ``budget_s`` wall seconds per
-    turn, then yields so that timers (the control loop's ticks) run on time. Fields may
-    be changed while subscribed (the shell scales the rates with the run's speed).
+    turn, then yields so that timers (the control loop's ticks) run on time. With
+    ``tick_due`` (the daemon's control tick that is due and has not run yet, or None),
+    the loop yields before a datagram while a tick is due, for at most
+    :data:`TICK_YIELD_S` per tick: a tick that falls due as datagrams arrive runs before
+    them instead of after a slice of them. Fields may be changed while subscribed (the
+    shell scales the rates with the run's speed).
     """
 
     depth: int = 1
@@ -328,6 +332,7 @@ class ReceivePolicy:
     batch: int = 64
     budget_s: float = 0.002
     admit: Admit | None = None
+    tick_due: Callable[[], float | None] | None = None
     stats: ReceiveStats = field(default_factory=ReceiveStats)
 
     def __post_init__(self) -> None:
@@ -340,6 +345,12 @@ class ReceivePolicy:
             value = getattr(self, name)
             if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
                 raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
+
+
+TICK_YIELD_S: Final = 0.002
+"""Longest an inbox holds its datagrams back for one due tick [wall s]: the tick's timer
+may fire up to a millisecond after its time; a tick that still has not run by then (its
+task waits for something else) must not stall the datagrams."""
 
 
 class _Recent:
@@ -389,6 +400,9 @@ class Inbox:
         self._recent: OrderedDict[str, _Recent] = OrderedDict()
         self._bytes = 0
         self._scheduled = False
+        self._held_for: float | None = None
+        """The due tick this inbox last held its datagrams back for, and since when."""
+        self._held_since = 0.0
 
     @property
     def lanes(self) -> int:
@@ -527,12 +541,28 @@ class Inbox:
             self._recent.clear()
             self._bytes = 0
 
+    def _hold_for_tick(self, now: float) -> bool:
+        """Whether to let a due tick run before the next datagram (``tick_due``)."""
+        try:
+            due = self.policy.tick_due() if self.policy.tick_due is not None else None
+        except Exception:
+            logger.exception("tick_due failed")
+            due = None
+        if due is None:
+            return False
+        if due != self._held_for:
+            self._held_for, self._held_since = due, now
+        return now - self._held_since < TICK_YIELD_S
+
     def _drain(self) -> None:
         """One loop turn: deliver round robin until the batch or the budget is used up."""
         policy = self.policy
         start = self._time()
         done = 0
         while True:
+            if policy.tick_due is not None and self._hold_for_tick(self._time()):
+                self.loop.call_soon(self._drain)  # behind the tick's wake-up
+                return
             with self._lock:
                 if not self._lanes or not self.active:
                     self._scheduled = False

@@ -669,3 +669,28 @@ async def test_the_stats_carry_the_ticks_p99_lag_beside_the_max_and_a_new_run_re
     snapshot = shell.stats_report(final=False).snapshot
     assert snapshot["max_tick_lag_s"] == 0.0 and "tick_lag_s_p99" not in snapshot
     await shell.close()
+
+
+async def test_the_shell_names_a_due_tick_until_it_runs() -> None:
+    shell = DaemonShell(
+        config(VehicleDaemonConfig, node_id="B", scenario=str(PAPER)),
+        "test",
+        MemoryTransport(MemoryBus()),
+    )
+    await shell.open()
+    shell.subscribe_v2x(keyexpr.all_future_paths(), Stream.FP, lambda *_: None)
+    shell.subscribe_plumbing("crosspath/sim/truth/*", lambda *_: None)
+    assert shell.tick_due() is None  # no run
+    shell.begin_run("run-1", time.time() - 1.0, 1.0)  # run time about 1 s now
+    shell.next_tick_s = 100.0
+    assert shell.tick_due() is None  # not due yet
+    shell.next_tick_s = 0.5
+    assert shell.tick_due() == 0.5  # due, not run
+    assert len(shell.receive) == 2  # V2X and plumbing inboxes both hold for a due tick
+    assert all(p.tick_due == shell.tick_due for p in shell.receive.values())
+    shell.on_tick(0.5, 1.0, 0.1)
+    assert shell.tick_due() is None  # it ran
+    shell.next_tick_s = 0.6
+    await shell.end_run(0.0)
+    assert shell.tick_due() is None  # no more ticks after the run
+    await shell.close()

@@ -15,6 +15,7 @@ from protocol.auth import seal
 from protocol.messages import FORMAT_VERSION
 from services.bench.flood import _fake_path
 from services.edge.transport import (
+    TICK_YIELD_S,
     V2X_QOS,
     Inbox,
     MemoryBus,
@@ -240,6 +241,53 @@ async def test_timers_run_while_a_backlog_drains() -> None:
     while handled < 2000:
         await asyncio.sleep(0)
     assert seen_at_tick and seen_at_tick[0] <= 4 * 16
+
+
+async def test_a_due_tick_runs_before_the_datagrams_that_arrived_with_it() -> None:
+    """The control tick falls due as datagrams arrive (the cars plan when the RSU ticks):
+    its wake-up is queued after the drain, yet it runs first (``tick_due``)."""
+    loop = asyncio.get_running_loop()
+    order: list[bytes] = []
+    due: list[float | None] = [1.0]  # the tick of run time 1.0 is due and has not run
+    policy = ReceivePolicy(tick_due=lambda: due[0])
+    # wall time stands still (a hand-set clock): only the tick can end the hold
+    inbox = Inbox(loop, lambda k, p: order.append(p[-4:]), policy, Clock())
+    for i in range(3):
+        inbox.put(f"cp/v2x/fp/c{i}", payload(1, i))  # the drain is queued first
+
+    async def tick() -> None:
+        wake = loop.create_future()
+        loop.call_soon(wake.set_result, None)  # the tick's timer, after the datagrams
+        await wake
+        order.append(b"tick")
+        due[0] = None
+
+    await asyncio.gather(tick(), settle())
+    await settle()
+    assert order == [b"tick", *(i.to_bytes(4, "little") for i in range(3))]
+
+
+async def test_an_inbox_holds_its_datagrams_for_a_due_tick_only_so_long() -> None:
+    """A due tick that does not run (its task waits for something else) holds the datagrams
+    back for ``TICK_YIELD_S`` of wall time, then they flow; the next tick is held for anew."""
+    clock = Clock()
+    handled: list[bytes] = []
+    due: list[float | None] = [1.0]
+    policy = ReceivePolicy(tick_due=lambda: due[0])
+    inbox = Inbox(asyncio.get_running_loop(), lambda k, p: handled.append(p), policy, clock)
+    inbox.put("cp/v2x/fp/a", payload(1, 0))
+    await settle()
+    assert handled == []  # held while the tick is due
+    clock.t += TICK_YIELD_S
+    await settle()
+    assert len(handled) == 1  # the hold is over: the tick did not come
+    due[0] = 1.1
+    inbox.put("cp/v2x/fp/a", payload(1, 1))
+    await settle()
+    assert len(handled) == 1  # held for the next tick
+    due[0] = None
+    await settle()
+    assert len(handled) == 2
 
 
 async def test_memory_transport_offers_from_another_thread_through_the_inbox() -> None:
