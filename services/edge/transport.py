@@ -17,7 +17,10 @@ copied), a per-lane token bucket, one bounded queue per lane (a lane is one key 
 message kind, i.e. one sender: for V2X the latest message wins), bounds on lanes,
 bytes and rate states (least recently used evicted), and a loop side that takes
 the lanes round robin a few at a time (``batch``, ``budget_s``) and then yields, so
-a timer due meanwhile (the next tick) runs within about one budget. One wake-up of
+a timer due meanwhile (the next tick) runs within about one budget; a daemon's inboxes
+also hold their datagrams back while its control tick is due and has not run
+(``tick_due``, at most :data:`TICK_YIELD_S`), since the cars plan at the run times the
+RSU ticks at and their paths arrive as its tick falls due. One wake-up of
 the loop per batch instead of one per datagram. Without a policy every datagram is
 handed to the loop as it comes (tests, tools).
 
