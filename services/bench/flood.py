@@ -360,7 +360,6 @@ def _growth_pct(samples: Sequence[int]) -> float | None:
 def _summary(phase: _Phase, rsu: str) -> dict[str, Any]:
     results = phase.results
     p99s: list[float] = []
-    lags: list[float] = []
     by_node: dict[str, float] = {}
     p99_by_node: dict[str, float] = {}
     late = 0
@@ -372,7 +371,6 @@ def _summary(phase: _Phase, rsu: str) -> dict[str, Any]:
             data = entry if isinstance(entry, Mapping) else {}
             lag = data.get("max_tick_lag_s")
             if isinstance(lag, int | float):
-                lags.append(float(lag))
                 by_node[node] = max(by_node.get(node, 0.0), float(lag))
             lag_p99 = data.get("tick_lag_s_p99")
             if isinstance(lag_p99, int | float):
@@ -399,7 +397,7 @@ def _summary(phase: _Phase, rsu: str) -> dict[str, Any]:
         "collisions": sum(r.collisions for r in results),
         "all_finished": bool(results) and all(r.all_finished for r in results),
         "decision_ms_p99": max(p99s) if p99s else None,
-        "tick_late_ms_max": round(max(lags) * 1e3, 2) if lags else None,
+        "tick_late_ms_max": round(max(by_node.values()) * 1e3, 2) if by_node else None,
         "tick_late_ms_max_by_node": {n: round(v * 1e3, 2) for n, v in sorted(by_node.items())},
         "rsu_tick_late_ms_max": round(by_node[rsu] * 1e3, 2) if rsu in by_node else None,
         "tick_late_ms_p99_by_node": {n: round(v * 1e3, 2) for n, v in sorted(p99_by_node.items())},

@@ -544,10 +544,10 @@ class Inbox:
             self._recent.clear()
             self._bytes = 0
 
-    def _hold_for_tick(self, now: float) -> bool:
+    def _hold_for_tick(self, tick_due: Callable[[], float | None], now: float) -> bool:
         """Whether to let a due tick run before the next datagram (``tick_due``)."""
         try:
-            due = self.policy.tick_due() if self.policy.tick_due is not None else None
+            due = tick_due()
         except Exception:
             logger.exception("tick_due failed")
             due = None
@@ -563,7 +563,8 @@ class Inbox:
         start = self._time()
         done = 0
         while True:
-            if policy.tick_due is not None and self._hold_for_tick(self._time()):
+            tick_due = policy.tick_due
+            if tick_due is not None and self._hold_for_tick(tick_due, self._time()):
                 self.loop.call_soon(self._drain)  # behind the tick's wake-up
                 return
             with self._lock:
