@@ -198,7 +198,8 @@ def acl_config(
 
     def node(nid: str, keys: list[str]) -> None:
         rules.append(_rule(f"pub-{nid}", keys, _DATA))
-        rules.append(_rule(f"alive-{nid}", [f"{p}/sim/alive/{nid}"], ("liveliness_token",)))
+        alive = [f"{p}/sim/alive/{nid}", f"{p}/sim/alive/{nid}/*"]  # and its generations
+        rules.append(_rule(f"alive-{nid}", alive, ("liveliness_token",)))
         subjects.append({"id": nid, "cert_common_names": [nid]})
         policies.append(
             {"rules": ["subscribe", "deliver", f"pub-{nid}", f"alive-{nid}"], "subjects": [nid]}

@@ -13,16 +13,20 @@ from pathlib import Path
 
 import pytest
 import zenoh
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from protocol import keys
 from services.edge.settings import ZenohSettings
 from services.edge.transport import (
+    MAX_TOKEN_GENERATIONS,
     RELIABLE_QOS,
     V2X_QOS,
     EndpointError,
     MemoryBus,
     MemoryTransport,
     Qos,
+    TokenGenerations,
     TransportConfigError,
     TransportError,
     ZenohTransport,
@@ -187,6 +191,81 @@ async def test_liveliness_token_appears_and_goes(
     b.close()  # the session's tokens vanish with it
     await wait_for(lambda: ("crosspath/alive/early", False) in changes)
     early.close()  # no-op once the transport is closed
+
+
+async def test_a_token_is_declared_again_unnoticed_by_a_watcher() -> None:
+    """TOKEN_REFRESH_S: the token is re-declared on schedule (a declaration lost while
+    many peers join is repaired), and a watcher that saw it sees neither a second PUT
+    nor a DELETE until the token really goes."""
+    a_eps = endpoints()
+    a = ZenohTransport(ZenohSettings(listen=a_eps))
+    b = ZenohTransport(ZenohSettings(connect=a_eps), token_refresh_s=(0.05, 0.1))
+    a.open()
+    await b.open_async()
+    try:
+        changes: list[tuple[str, bool]] = []
+        a.watch_liveliness("crosspath/alive/*", lambda key, alive: changes.append((key, alive)))
+        token = b.declare_liveliness("crosspath/alive/b")
+        await wait_for(lambda: b.tokens_refreshed >= 5)
+        await asyncio.sleep(0.2)
+        assert changes == [("crosspath/alive/b", True)]
+        token.close()
+        await wait_for(lambda: ("crosspath/alive/b", False) in changes)
+        done = b.tokens_refreshed
+        await asyncio.sleep(0.3)
+        assert b.tokens_refreshed == done  # a closed token is not declared again
+        assert changes == [("crosspath/alive/b", True), ("crosspath/alive/b", False)]
+    finally:
+        b.close()
+        a.close()
+    with pytest.raises(ValueError, match="refresh"):
+        ZenohTransport(ZenohSettings(), token_refresh_s=(1.0, 0.0))
+
+
+def test_token_generations_report_a_key_while_any_generation_lives() -> None:
+    g = TokenGenerations("p/alive/*")
+    assert g.update("p/alive/a/0", True) == "p/alive/a"
+    assert g.update("p/alive/a/1", True) is None  # the next generation: no change
+    assert g.update("p/alive/a/0", False) is None
+    assert g.update("p/alive/a/1", False) == "p/alive/a"
+    assert g.update("p/alive/7", True) == "p/alive/7"  # a bare token counts, digits too
+    assert g.update("p/alive/7", False) == "p/alive/7"
+    assert g.update("p/other/a/0", True) is None and g.ignored == 1
+    assert g.update("p/alive/a/x/0", True) is None and g.ignored == 2
+    assert g.update("p/alive/a/9", False) is None  # never seen: nothing to end
+    deep = TokenGenerations("p/**")
+    assert deep.update("p/alive/a/3", True) == "p/alive/a"
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    st.lists(
+        st.tuples(
+            st.sampled_from(["a", "b", "12"]),
+            st.sampled_from(["", "0", "1", "2", "3", "4", "5"]),
+            st.booleans(),
+        ),
+        max_size=60,
+    )
+)
+def test_token_generations_follow_a_model(events: list[tuple[str, str, bool]]) -> None:
+    """Any sequence of token events: a key is reported alive exactly while one of its
+    tracked generations lives, transitions alternate, and per-key state stays bounded."""
+    g = TokenGenerations("p/alive/*")
+    model: dict[str, set[str]] = {}
+    reported: dict[str, bool] = {}
+    for node, gen, alive in events:
+        key = f"p/alive/{node}"
+        live = model.setdefault(key, set())
+        if alive and gen not in live and len(live) < MAX_TOKEN_GENERATIONS:
+            live.add(gen)
+        elif not alive:
+            live.discard(gen)
+        changed = g.update(f"{key}/{gen}" if gen else key, alive)
+        if changed is not None:
+            assert changed == key and reported.get(key, False) != alive
+            reported[key] = alive
+        assert reported.get(key, False) == bool(live)
 
 
 async def test_close_undeclares_everything_and_is_idempotent() -> None:

@@ -69,6 +69,20 @@ def test_mutual_tls_and_acl_with_real_zenoh(tmp_path: Path) -> None:
             time.sleep(0.2)
         assert "crosspath/v2x/rsu/rsu1/cmd/A" in got
         assert "crosspath/v2x/fp/A" not in got
+        # liveliness: a node's own token generations pass, a token on another's key not
+        tokens: list[str] = []
+        sessions.append(
+            rsu.liveliness().declare_subscriber(
+                "crosspath/sim/alive/**", lambda s: tokens.append(str(s.key_expr)), history=True
+            )
+        )
+        sessions.append(car.liveliness().declare_token("crosspath/sim/alive/rsu1/3"))
+        sessions.append(car.liveliness().declare_token("crosspath/sim/alive/A/3"))
+        deadline = time.monotonic() + 5.0
+        while "crosspath/sim/alive/A/3" not in tokens and time.monotonic() < deadline:
+            time.sleep(0.05)
+        time.sleep(0.3)
+        assert tokens == ["crosspath/sim/alive/A/3"]
         refused = False
         try:
             sessions.append(zenoh.open(_config(tmp_path, "A", "client", endpoint, no_cert=True)))
