@@ -628,10 +628,12 @@ class Transport(Protocol):
         (through a bounded :class:`Inbox` when a ``policy`` is given)."""
 
     def declare_liveliness(self, key: str) -> Subscription:
-        """Announce this node alive on ``key`` until closed (or the process dies)."""
+        """Announce this node alive on ``key`` until closed (or the process dies); over
+        Zenoh as generations ``key/<n>`` (``TOKEN_REFRESH_S``)."""
 
     def watch_liveliness(self, keyexpr: str, on_change: LivelinessHandler) -> Subscription:
-        """Call ``on_change(key, alive)`` for tokens matching ``keyexpr``, present ones first."""
+        """Call ``on_change(key, alive)`` for tokens matching ``keyexpr``, present ones first
+        (a key with several token generations counts once, ``TokenGenerations``)."""
 
 
 def _bind_loop(loop: asyncio.AbstractEventLoop | None) -> asyncio.AbstractEventLoop:
