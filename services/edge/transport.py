@@ -767,9 +767,11 @@ TOKEN_REFRESH_S: Final = (0.5, 1.0, 2.0, 4.0, 8.0)
 A token's declaration reaches a peer once, when declared or when a transport to the
 peer opens, and was seen to be lost for good while many peers joined at once: with 40
 peer processes starting together on this 2-core machine, each connecting to those
-before it over UDP and TCP, node 0 lacked 1-2 of the others' tokens for 12 s in 6 of
-17 runs (ids ordered by start; 0 of 11 with random ids) although every peer held a
-transport to it. That was first seen as a CI run's car whose token never reached the
+before it over UDP and TCP, node 0 lacked 1-2 of the others' tokens for 12 s although
+every peer held a transport to it: in 1 of 6 runs with random ids and TCP endpoints
+listed first, 0 of 11 with UDP first, and 6 of 17 with ids ordered by start and gossip
+dialling only from the greater id (tried first, against zenoh#169's concurrent opens,
+and dropped). That was first seen as a CI run's car whose token never reached the
 monitor. Declaring a second token on the same key sends nothing (Zenoh aggregates a
 session's tokens per key), but one on a new key arrived from every peer. So
 ``declare_liveliness(key)`` declares ``key/<generation>`` and, after each delay here,
@@ -787,8 +789,11 @@ MAX_TOKEN_GENERATIONS: Final = 4
 """Live generations a watch keeps per key (two in normal use); more are ignored."""
 
 MAX_WATCHED_KEYS: Final = 4096
-"""Keys a watch keeps alive state for; tokens on more keys are ignored (any peer may
-declare tokens)."""
+"""Keys a watch keeps alive state for; tokens on more keys are ignored. Without access
+control any peer may declare tokens, on any key (Zenoh keeps them all in its own
+tables too): the defence is the router's ACL (``deploy/zenoh``, a node may declare
+only its own ``sim/alive/<node>`` and its generations); this bound only keeps a
+watch's own state finite."""
 
 
 class TokenGenerations:
