@@ -223,6 +223,36 @@ async def test_a_token_is_declared_again_unnoticed_by_a_watcher() -> None:
         ZenohTransport(ZenohSettings(), token_refresh_s=(1.0, 0.0))
 
 
+async def test_a_restarted_node_stays_alive_when_its_predecessor_goes() -> None:
+    """Two transports declare the same key (a node and its restart, whose predecessor's
+    token lingers until its lease ends): the key stays alive until both are gone, even
+    where their generations coincide (Zenoh counts a key alive while any session holds
+    a token on it)."""
+    a_eps = endpoints()
+    watcher = ZenohTransport(ZenohSettings(listen=a_eps))
+    old = ZenohTransport(ZenohSettings(connect=a_eps))
+    new = ZenohTransport(ZenohSettings(connect=a_eps))
+    watcher.open()
+    await old.open_async()
+    await new.open_async()
+    try:
+        changes: list[tuple[str, bool]] = []
+        watcher.watch_liveliness("crosspath/alive/*", lambda k, alive: changes.append((k, alive)))
+        old.declare_liveliness("crosspath/alive/rsu1")
+        await wait_for(lambda: changes == [("crosspath/alive/rsu1", True)])
+        new.declare_liveliness("crosspath/alive/rsu1")
+        await asyncio.sleep(0.3)
+        old.close()
+        await asyncio.sleep(1.0)
+        assert changes == [("crosspath/alive/rsu1", True)]
+        new.close()
+        await wait_for(lambda: changes[-1] == ("crosspath/alive/rsu1", False))
+    finally:
+        new.close()
+        old.close()
+        watcher.close()
+
+
 def test_token_generations_report_a_key_while_any_generation_lives() -> None:
     g = TokenGenerations("p/alive/*")
     assert g.update("p/alive/a/0", True) == "p/alive/a"
