@@ -778,9 +778,9 @@ session's tokens per key), but one on a new key arrived from every peer. So
 the next generation before undeclaring the previous one; ``watch_liveliness`` reports
 a key alive while any generation of it is (a bare ``key`` counts as one). With it, 10
 of 10 such runs saw every token within 3 s. Subscriber declarations were lost the same
-way (the nodes whose token node 0 lacked exchanged no data with it either) and are not repaired
-here: the loss came from a pair's UDP and TCP links being opened at once, and went
-away (0 of 10) when Zenoh opened a node's connect endpoints one after another
+way (the nodes whose token node 0 lacked exchanged no data with it either) and are not
+repaired here: the loss came from a pair's UDP and TCP links being opened at once, and
+went away (0 of 10) when Zenoh opened a node's connect endpoints one after another
 (``connect/exit_on_failure``), not yet adopted by the launcher (7 December note).
 
 The generations stop after the start-up burst, where declarations were lost:
