@@ -220,6 +220,7 @@ def run_up(args: argparse.Namespace) -> int:
             args.speed,
             json_out=log_dir / "result.json",
             log_level=args.log_level,
+            monitor_last=True,
         )
         actors = [n for n in commands if n != MONITOR]
         for node in actors:

@@ -106,6 +106,17 @@ class ZenohSettings(BaseModel):
     ``tcp/`` endpoint that the others can reach (gossip passes them on)."""
     connect: list[str] = Field(default_factory=list)
     """Endpoints to connect to (both endpoints of the rendezvous RSU or router)."""
+    connect_in_turn: bool = False
+    """Open connects to the reliable ``connect`` endpoints (``tcp/``, ``tls/``) one after
+    another, waiting for each (at most ``connect_timeout_s`` in all), and then to the
+    others (``udp/``, ``quic/``) in the background; off: Zenoh's default, every endpoint
+    in the background at once, so start order does not matter. For set-ups that start
+    nodes in order, each connecting to nodes already up (``crosspath up``, the lab): a
+    pair's UDP and TCP links opened at once were seen to lose declarations (tokens,
+    subscribers) for good (``services.edge.transport.zenoh_config``)."""
+    connect_timeout_s: Annotated[float, Field(gt=0.0, le=3600.0)] = 30.0
+    """With ``connect_in_turn``: how long open waits for the reliable endpoints in all
+    [s] before it fails (an endpoint that never answers)."""
     multicast_scouting: bool = False
     max_links: Annotated[int, Field(ge=1, le=64)] = 2
     """Links per peer pair: 2 or more lets a UDP and a TCP link coexist."""
@@ -121,6 +132,15 @@ class ZenohSettings(BaseModel):
             if not sep or not proto or not address:
                 raise ValueError(f"endpoint {endpoint!r} is not <proto>/<address>")
         return value
+
+
+def background_endpoint(endpoint: str) -> str:
+    """``endpoint`` marked for Zenoh to connect to in the background even with
+    ``ZenohSettings.connect_in_turn`` (its own ``exit_on_failure=false`` option); one that
+    says ``exit_on_failure`` already is returned as it is."""
+    if "exit_on_failure=" in endpoint.partition("#")[2]:
+        return endpoint
+    return f"{endpoint}{';' if '#' in endpoint else '#'}exit_on_failure=false"
 
 
 class SecuritySettings(BaseModel):

@@ -32,7 +32,11 @@ on one UDP and one TCP port of 127.0.0.1 (free ports picked at start) and
 connecting to both endpoints of every node started before it (monitor, RSUs,
 cars in that order). So every pair of nodes holds a direct UDP link, which
 carries the best-effort V2X traffic, and a direct TCP link, which carries the
-reliable plumbing (``max_links`` 2; see ``deploy/zenoh/README.md``).
+reliable plumbing (``max_links`` 2; see ``deploy/zenoh/README.md``). A node's
+open connects to the TCP endpoints one after another, then to the UDP ones in the
+background (``ZenohSettings.connect_in_turn``: links of a pair opened at once lost
+declarations for good), and fails when the nodes before it do not answer within
+``connect_timeout_s`` (30 s).
 
 Files: each child's stdout and stderr go to ``<run dir>/<node>.log``; the
 monitor writes ``<run dir>/result.json``; ``<run dir>/children.json`` lists the
@@ -66,7 +70,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import FrameType
@@ -83,7 +87,7 @@ from services.edge.args import (
     run_speed,
 )
 from services.edge.progress import Ticker
-from services.edge.settings import LogLevel
+from services.edge.settings import LogLevel, background_endpoint
 from services.model.catalog import resolve_scenario
 from services.model.results import CrashEvent, RunResult
 from services.model.scenario import Scenario, load_scenario
@@ -191,6 +195,7 @@ def actor_commands(
     zenoh_options: Mapping[str, object] | None = None,
     trace: bool = False,
     keys_dir: Path | None = None,
+    started_later: Collection[str] = (),
 ) -> dict[str, list[str]]:
     """Command lines (argv) of every daemon of one run, in start order (see :func:`node_order`).
 
@@ -202,9 +207,12 @@ def actor_commands(
     daemon (``crosspath up`` shortens the link lease, :data:`LEASE_MS`); ``trace`` asks
     the monitor for the per-step trace in its result; ``keys_dir`` (an authority made by
     :func:`make_run_authority`) gives every daemon its key, certificate, the root and the
-    revocation list (None: no credentials, unsigned V2X). Raises ``ValueError``
-    (``ScenarioError`` included) when the scenario is unusable or an endpoint
-    is missing.
+    revocation list (None: no credentials, unsigned V2X). Every node connects to the
+    TCP endpoints before it one after another (``zenoh.connect_in_turn``), so each must be
+    up within 30 s, except those of ``started_later`` (``crosspath lab up`` starts the
+    monitor after the others), which it connects to in the background. Raises
+    ``ValueError`` (``ScenarioError`` included) when the scenario is unusable or an
+    endpoint is missing.
     """
     mode = RunMode(mode)
     policy = Policy(policy)
@@ -242,7 +250,11 @@ def actor_commands(
             argv += ["--listen", locator]
         for earlier in order[:index]:
             for locator in endpoints[earlier].locators:
+                if earlier in started_later:  # not awaited (connect_in_turn)
+                    locator = background_endpoint(locator)
                 argv += ["--connect", locator]
+        # the nodes it connects to are up: their links are opened one after another
+        argv += ["--set", "zenoh.connect_in_turn=true"]
         if zenoh_options:
             argv += ["--set", f"zenoh.options={json.dumps(dict(zenoh_options))}"]
         if log_level is not None:

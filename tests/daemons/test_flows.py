@@ -87,18 +87,24 @@ def test_cars_are_grouped_into_hosts_that_keep_one_node_per_car(tmp_path: Path) 
     assert ids == cars[5:10]
     listens = [argv[i + 1] for i, a in enumerate(argv) if a == "--listen"]
     assert listens == [loc for car in ids for loc in endpoints[car].locators]
+    assert "zenoh.connect_in_turn=true" in argv  # the host's cars open their links in turn
     # the host gives each car its own endpoints; car k also connects to cars 0..k-1
     args = argparse.Namespace(
         scenario=path, node_id=None, listen=listens, connect=["tcp/127.0.0.1:1"]
     )
     base = config(VehicleDaemonConfig, node_id=ids[0], scenario=str(path))
     base = base.model_copy(
-        update={"zenoh": base.zenoh.model_copy(update={"listen": args.listen, "connect": []})}
+        update={
+            "zenoh": base.zenoh.model_copy(
+                update={"listen": args.listen, "connect": [], "connect_in_turn": True}
+            )
+        }
     )
     per_car = host_configs(base, ids)
     assert [c.node_id for c in per_car] == ids
     assert per_car[2].zenoh.listen == endpoints[ids[2]].locators
     assert per_car[2].zenoh.connect == endpoints[ids[0]].locators + endpoints[ids[1]].locators
+    assert all(c.zenoh.connect_in_turn for c in per_car)
     with pytest.raises(ConfigError):
         host_configs(base, ids[:3])  # 10 endpoints do not split among 3 cars
     with pytest.raises(ValueError):

@@ -124,6 +124,11 @@ def test_cli_arguments_to_overrides(tmp_path: Path) -> None:
         ({"overrides": {"node_id": "car-a", "colour": "red"}}, "colour", "Extra inputs"),
         ({"overrides": {"node_id": "car-a", "zenoh.mode": "mesh"}}, "zenoh.mode", "'peer'"),
         ({"overrides": {"node_id": "car-a", "time.speed": 0}}, "time.speed", "greater than 0"),
+        (
+            {"overrides": {"node_id": "c", "zenoh.connect_timeout_s": 0}},
+            "zenoh.connect_timeout_s",
+            "greater than 0",
+        ),
         ({"overrides": {"node_id": "car a"}}, "node_id", "invalid node id"),
         ({"overrides": {"node_id": "c", "key_prefix": "x/*"}}, "key_prefix", "invalid key prefix"),
         ({"env": {}}, "node_id", "Field required"),

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import json
 import os
 import socket
 import subprocess
@@ -30,6 +31,7 @@ from services.edge.transport import (
     TransportConfigError,
     TransportError,
     ZenohTransport,
+    connect_in_turn,
     keyexpr_matches,
     qos_for,
     qos_for_key,
@@ -425,6 +427,103 @@ async def test_a_peer_records_its_connect_endpoints() -> None:
         transport.close()
 
 
+def test_connect_in_turn_awaits_reliable_endpoints_then_the_others() -> None:
+    given_order = [
+        "udp/10.0.0.1:7447",
+        "tcp/10.0.0.1:7447",
+        "quic/10.0.0.2:7447?rel=0#retry_period_init_ms=100",
+        "tls/10.0.0.2:7447",
+        "udp/10.0.0.3:7447#exit_on_failure=true",
+    ]
+    assert connect_in_turn(given_order) == [
+        "tcp/10.0.0.1:7447",
+        "tls/10.0.0.2:7447",
+        "udp/10.0.0.1:7447#exit_on_failure=false",
+        "quic/10.0.0.2:7447?rel=0#retry_period_init_ms=100;exit_on_failure=false",
+        "udp/10.0.0.3:7447#exit_on_failure=true",  # said explicitly: kept
+    ]
+    assert connect_in_turn([]) == []
+
+
+endpoint_st = st.builds(
+    "{}/10.0.0.{}:{}{}".format,
+    st.sampled_from(["udp", "tcp", "tls", "quic", "ws"]),
+    st.integers(0, 255),
+    st.integers(1, 65535),
+    st.sampled_from(["", "#dscp=0x08", "?rel=0"]),
+)
+
+
+@given(st.lists(endpoint_st, max_size=12))
+def test_connect_in_turn_keeps_every_endpoint_and_the_reliable_order(eps: list[str]) -> None:
+    out = connect_in_turn(eps)
+    reliable = [e for e in eps if e.split("/")[0] in ("tcp", "tls")]
+    assert out[: len(reliable)] == reliable
+    rest = out[len(reliable) :]
+    assert all(e.endswith("exit_on_failure=false") for e in rest)
+    assert [e.removesuffix("exit_on_failure=false")[:-1] for e in rest] == [
+        e for e in eps if e not in reliable
+    ]
+
+
+async def test_a_peer_connecting_in_turn_holds_both_links_to_each_earlier_peer() -> None:
+    """Three peers started in order, each connecting in turn to the ones before it."""
+    listens = [endpoints() for _ in range(3)]
+    nodes = [
+        ZenohTransport(
+            ZenohSettings(
+                listen=listens[i],
+                connect=[e for earlier in listens[:i] for e in earlier],
+                connect_in_turn=True,
+            )
+        )
+        for i in range(3)
+    ]
+    try:
+        for node in nodes:
+            await node.open_async()
+        for i, node in enumerate(nodes[1:], start=1):
+            wanted = {e for earlier in listens[:i] for e in earlier}
+            await wait_for(lambda n=node, w=wanted: {dst for _, dst in n.links()} >= w)  # type: ignore[misc]
+        # data crosses: the last node's subscriber was declared to the first
+        got: list[str] = []
+        nodes[2].subscribe(keys.all_sim(), lambda key, _data: got.append(key))
+
+        async def exchange() -> None:
+            while not got:
+                nodes[0].publish(keys.sim("truth", "a"), b"x", RELIABLE_QOS)
+                await asyncio.sleep(0.05)
+
+        await asyncio.wait_for(exchange(), 5.0)
+    finally:
+        for node in reversed(nodes):
+            node.close()
+
+
+async def test_a_peer_connecting_in_turn_fails_when_a_reliable_endpoint_never_answers() -> None:
+    nobody_tcp = f"tcp/127.0.0.1:{free_port(socket.SOCK_STREAM)}"
+    late = ZenohTransport(
+        ZenohSettings(connect=[nobody_tcp], connect_in_turn=True, connect_timeout_s=0.5)
+    )
+    with pytest.raises(TransportError, match="connect_in_turn") as failed:
+        await late.open_async()
+    assert not isinstance(failed.value, TransportConfigError) and nobody_tcp in str(failed.value)
+    # a best-effort endpoint that never answers does not hold the open up
+    a_eps = endpoints()
+    a = ZenohTransport(ZenohSettings(listen=a_eps))
+    a.open()
+    nobody_udp = f"udp/127.0.0.1:{free_port(socket.SOCK_DGRAM)}"
+    b = ZenohTransport(
+        ZenohSettings(connect=[*a_eps, nobody_udp], connect_in_turn=True, connect_timeout_s=5.0)
+    )
+    try:
+        await b.open_async()
+        assert [dst for _, dst in b.links() if dst.startswith("tcp/")] == [a_eps[1]]
+    finally:
+        b.close()
+        a.close()
+
+
 def test_zenoh_config_from_settings_and_file(tmp_path: Path) -> None:
     config = zenoh_config(
         ZenohSettings(
@@ -445,6 +544,22 @@ def test_zenoh_config_from_settings_and_file(tmp_path: Path) -> None:
     overridden = zenoh_config(ZenohSettings(config_file=file, listen=["tcp/127.0.0.1:7001"]))
     assert "tcp/127.0.0.1:7001" in overridden.get_json("listen/endpoints")
     assert "udp/127.0.0.1:7000" not in overridden.get_json("listen/endpoints")
+
+    in_turn = zenoh_config(
+        ZenohSettings(
+            config_file=file,
+            connect=["udp/127.0.0.1:7000", "tcp/127.0.0.1:7000"],
+            connect_in_turn=True,
+            connect_timeout_s=2.5,
+        )
+    )
+    assert json.loads(in_turn.get_json("connect/endpoints")) == [
+        "tcp/127.0.0.1:7000",
+        "udp/127.0.0.1:7000#exit_on_failure=false",
+    ]
+    assert in_turn.get_json("connect/exit_on_failure") == "true"
+    assert in_turn.get_json("connect/timeout_ms") == "2500"
+    assert "exit_on_failure" not in only_file.get_json("connect/endpoints")
 
     file.write_text("{ mode: ")
     with pytest.raises(TransportError, match="invalid Zenoh configuration"):

@@ -65,6 +65,7 @@ from protocol import (
 from protocol import keys as keyexpr
 from protocol.auth import run_tag, seal
 from services.edge.plumbing import PlumbingAuth, StatsReport, encode_stats
+from services.edge.settings import background_endpoint
 from services.edge.trust import Authority, rsu_grants
 from services.model.scenario import load_scenario
 from services.model.types import RunMode
@@ -311,6 +312,10 @@ def test_a_liveliness_token_and_forged_stats_cannot_stand_in_for_the_rsu(tmp_pat
     commands = dict(up.launcher.commands)
     rsu_argv = commands.pop("rsu1")  # no RSU at all
     commands["monitor"] = [*commands["monitor"], "--wait-actors", "5"]  # the last one wins
+    # the cars' starts do not wait for it (connect_in_turn would, then give up)
+    rsu_listen = {rsu_argv[i + 1] for i, a in enumerate(rsu_argv) if a == "--listen"}
+    for car in ("A", "B"):
+        commands[car] = [background_endpoint(a) if a in rsu_listen else a for a in commands[car]]
     up.launcher.commands = commands
     connect = [rsu_argv[i + 1] for i, a in enumerate(rsu_argv) if a == "--connect"]
     forger = Authority.init(tmp_path / "evil-pki")

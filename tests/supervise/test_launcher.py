@@ -95,6 +95,16 @@ def test_actor_commands_order_listen_and_connect() -> None:
         "udp/10.231.1.2:7447", "tcp/10.231.2.2:7447",
         "udp/10.231.1.3:7447", "tcp/10.231.2.3:7447",
     ]  # fmt: skip
+    # every node opens its pair links one after another (connect_in_turn)
+    for argv in (mon, rsu, a, b):
+        assert "zenoh.connect_in_turn=true" in values(argv, "--set")
+    # a monitor started after the others (lab up) is connected to in the background
+    later = actor_commands(PAPER, "rsu", "slot", 3, 2.0, eps, started_later=["monitor"])
+    assert values(later["B"], "--connect") == [
+        "udp/10.231.1.1:7447#exit_on_failure=false", "tcp/10.231.2.1:7447#exit_on_failure=false",
+        "udp/10.231.1.2:7447", "tcp/10.231.2.2:7447",
+        "udp/10.231.1.3:7447", "tcp/10.231.2.3:7447",
+    ]  # fmt: skip
 
 
 def test_actor_commands_refuse_missing_endpoints_and_bad_locators() -> None:

@@ -634,8 +634,11 @@ class LabSession:
         max_sim_s: float | None = None,
         start_delay_s: float | None = START_DELAY_S,
         log_level: str | None = "INFO",
+        monitor_last: bool = False,
     ) -> dict[str, list[str]]:
-        """The daemons' command lines (``actor_commands``) on the lab's addresses."""
+        """The daemons' command lines (``actor_commands``) on the lab's addresses;
+        ``monitor_last``: the monitor starts after the others (``crosspath lab up``), so
+        they connect to it in the background."""
         options: dict[str, object] = {
             "transport/link/tx/lease": self.lease_ms,
             # Marks every process with its lab (Zenoh shows it in the admin space; and
@@ -661,6 +664,7 @@ class LabSession:
             log_level=log_level,
             zenoh_options=options,
             keys_dir=keys_dir,
+            started_later=(MONITOR,) if monitor_last else (),
         )
         per = max(len(g) for g in self.groups) if self.groups else 1
         if per > 1:
