@@ -718,7 +718,11 @@ def connect_in_turn(endpoints: Sequence[str]) -> list[str]:
     pair), 6 December. This order (all TCP, then all UDP) lost none of 40 on 7 December,
     when the unchanged set-up lost none of 18 either (the loss needs a busier machine
     than that day's). A dead UDP path (the lab's total-loss test) does not hold up the
-    open."""
+    open. It also makes the mesh regular: 42 sessions opened in one process in the
+    launcher's order each held exactly one UDP and one TCP link to node 0 and two of
+    each to every other node (one it dialled, one gossip dialled back), opened in 5.0 s;
+    all at once, the sessions held 42-74 UDP and 41-68 TCP links each, unevenly, and took
+    20.8 s to open."""
     awaited = [e for e in endpoints if e.partition("/")[0] in AWAITED_PROTOCOLS]
     others = [e for e in endpoints if e.partition("/")[0] not in AWAITED_PROTOCOLS]
     return awaited + [background_endpoint(e) for e in others]
