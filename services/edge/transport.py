@@ -715,8 +715,8 @@ def connect_in_turn(endpoints: Sequence[str]) -> list[str]:
     launched, 4 of 10 with TCP listed first, 4 of 10 with gossip autoconnect off), and in
     none of 30 whose pairs opened them one after another (awaiting every endpoint;
     awaiting TCP with UDP after it in the background, both links formed; one link per
-    pair), 6 December. This order (all TCP, then all UDP) lost none of 40 on 7 December,
-    when the unchanged set-up lost none of 18 either (the loss needs a busier machine
+    pair), 6 December. This order (all TCP, then all UDP) lost none of 30 on 7 December,
+    when the unchanged set-up lost none of 20 either (the loss needs a busier machine
     than that day's). A dead UDP path (the lab's total-loss test) does not hold up the
     open. It also makes the mesh regular: 42 sessions opened in one process in the
     launcher's order each held exactly one UDP and one TCP link to node 0 and two of
