@@ -682,8 +682,9 @@ def zenoh_config(settings: ZenohSettings) -> zenoh.Config:
         if wanted("max_links"):
             config.insert_json5("transport/unicast/max_links", json.dumps(settings.max_links))
         if settings.connect_in_turn:
-            endpoints = connect_in_turn(_configured_endpoints(config, "connect"))
-            config.insert_json5("connect/endpoints", json.dumps(endpoints))
+            endpoints = _configured_endpoints(config, "connect")
+            if endpoints:  # a file's per-mode table of endpoints is left as it is
+                config.insert_json5("connect/endpoints", json.dumps(connect_in_turn(endpoints)))
             config.insert_json5("connect/exit_on_failure", "true")
             timeout_ms = round(settings.connect_timeout_s * 1000)
             config.insert_json5("connect/timeout_ms", json.dumps(timeout_ms))

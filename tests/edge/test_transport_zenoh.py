@@ -560,6 +560,10 @@ def test_zenoh_config_from_settings_and_file(tmp_path: Path) -> None:
     assert in_turn.get_json("connect/exit_on_failure") == "true"
     assert in_turn.get_json("connect/timeout_ms") == "2500"
     assert "exit_on_failure" not in only_file.get_json("connect/endpoints")
+    per_mode = tmp_path / "per-mode.json5"
+    per_mode.write_text('{ connect: { endpoints: { peer: ["tcp/127.0.0.1:7002"] } } }')
+    kept = zenoh_config(ZenohSettings(config_file=per_mode, connect_in_turn=True))
+    assert "tcp/127.0.0.1:7002" in kept.get_json("connect/endpoints")  # not wiped
 
     file.write_text("{ mode: ")
     with pytest.raises(TransportError, match="invalid Zenoh configuration"):
