@@ -7,7 +7,7 @@ OUT     ?= results
 
 .PHONY: install sysdeps lint test test-fast bench demo clean
 
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml setup.py protocol/_speedups.c
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
 	$(BIN)/pip install -q -e '.[dev]'
@@ -15,7 +15,8 @@ $(STAMP): pyproject.toml
 
 install: $(STAMP)
 
-# Debian packages the network lab needs (root only; no-op when present).
+# Debian packages the network lab needs, and a C compiler for the codec's C speed-ups
+# (root only; no-op when present). `make test` runs it before the install.
 sysdeps:
 	@bash deploy/lab/install-sysdeps.sh
 
@@ -33,7 +34,7 @@ lint: install
 # (SCHED_IDLE), so that no timing-sensitive test shares the CPU with another test.
 NOT_SLOW = $(if $(CI)$(SLOW),,and not slow)
 
-test: install sysdeps lint
+test: sysdeps install lint
 	@bash tests/passes.sh $(BIN) "$(NOT_SLOW)"
 
 test-fast: install

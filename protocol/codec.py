@@ -4,8 +4,8 @@ Plain ``struct`` fields, little-endian, at fixed offsets after each id; a vehicl
 path declares the car's limits (``VehicleLimits``: top speed, acceleration, braking,
 lateral acceleration) in five bytes, all zero when undeclared; path
 points are fixed-point (1 cm, 1 ms) and delta coded in columns whose width (0,
-1 or 2 bytes) the encoder picks per message, packed and unpacked with numpy in
-one go (no per-point Python loop). No msgpack: every field has a known type, so
+1 or 2 bytes) the encoder picks per message, packed and unpacked in one go (in C,
+else with numpy; never a per-point Python loop). No msgpack: every field has a known type, so
 tags and map keys would only add bytes and time.
 
 ``decode`` is the trust boundary: whatever a peer sends, it returns a valid
@@ -14,17 +14,20 @@ it never allocates more than a few kilobytes (a datagram holds at most
 ``max_points`` points). Everything ``decode`` accepts, ``encode`` accepts too.
 
 Speed (``crosspath bench codec``; issue 14's target is 25x stdlib JSON, 8 µs for
-encode + decode of a 120-point path): a datagram costs a few numpy calls each way
-(about 0.3-1 µs each whatever the size of a path: that overhead, not arithmetic, is
-the cost), so the Python around them is kept thin. Format 3 quantises every path
-time as a whole millisecond of the run, so neither side shifts the t column by the
-header time (two numpy calls fewer). An unsigned vehicle path from a known sender
+encode + decode of a 120-point path). An unsigned vehicle path from a known sender
 is encoded and decoded with one ``struct`` call for header, sender, state and first
 point (``_encode_vehicle_path_fast``, ``_decode_vehicle_path_fast``; anything unusual
-goes the general way, which explains refusals). Encoding works on the flat
-row-major array and checks delta widths on the bytes of one int16 cast
-(``_points``); decoding accumulates once over the (N, 3) rows and scales them in one
-same-shape division. Ids and
+goes the general way, which explains refusals), and its points with one call into
+the C speed-ups (``protocol/_speedups.c``: ``vehicle_path`` quantises the state and
+packs the points, ``unpack`` returns the read-only (N, 3) array, ``build`` sets a
+decoded message's slots): about 7 µs. They are optional: built at install when a C
+compiler is there, else (or after ``use_speedups(False)``) the numpy path runs, same
+bytes, about 23 µs: a dozen numpy calls each way of 0.3-1 µs each, whatever the
+size of a path (encoding works on the flat row-major array and checks delta widths
+on the bytes of one int16 cast, ``_points_numpy``; decoding accumulates once over
+the (N, 3) rows and scales them in one same-shape division, ``_vehicle_rows_numpy``).
+Format 3 quantises every path time as a whole millisecond of the run, so neither
+side shifts the t column by the header time. Ids and
 delta-column layouts, once validated, are cached (at most ``_CACHE_MAX`` entries
 each, cleared when full, so a peer cannot grow them), and ``decode`` builds the
 message without running the dataclass ``__init__`` (``_constructor``): every field
@@ -35,6 +38,7 @@ is validated here and every array is fresh and read-only, which is all that
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import operator
 import re
@@ -63,6 +67,31 @@ from protocol.messages import (
     VehicleLimits,
     VehiclePath,
 )
+
+try:  # the C speed-ups (protocol/_speedups.c), built at install when there is a compiler
+    from protocol import _speedups as _speedups_module
+except ImportError:  # no compiler at install: the numpy path, same bytes
+    _speedups_module = None  # type: ignore[assignment]
+
+_C_POINTS: Any = _speedups_module
+"""``protocol._speedups`` when built and in use, else None (``use_speedups``)."""
+
+
+def speedups_available() -> bool:
+    """Whether the codec's C speed-ups were built (``protocol/_speedups.c``)."""
+    return _speedups_module is not None
+
+
+def use_speedups(enabled: bool) -> bool:
+    """Run the codec with its C speed-ups (when built) or on its numpy path; the previous
+    setting. Both give the same bytes and messages: this exists to measure and test each."""
+    global _C_POINTS
+    previous = _C_POINTS is not None
+    on = enabled and _speedups_module is not None
+    _C_POINTS = _speedups_module if on else None
+    _NEW.update(_NEW_BY_SPEEDUPS[on])
+    return previous
+
 
 MAGIC: Final = 0xCB
 """First byte of every crosspath datagram."""
@@ -102,6 +131,7 @@ _KNOWN_FLAGS: Final = int(Flags.AUTH)
 _I32_MIN: Final = -(2**31)
 _I32_MAX: Final = 2**31 - 1
 _MAX_COORD_CM: Final = round(MAX_COORD_M * 100)
+_MAX_COORD_F: Final = float(_MAX_COORD_CM)
 _MAX_SPEED_CM_S: Final = round(MAX_SPEED_MPS * 100)
 _MAX_HEADING: Final = 31416  # 1e-4 rad, ceil(pi * 1e4)
 _MAX_LENGTH_CM: Final = round(MAX_LENGTH_M * 100)
@@ -291,13 +321,28 @@ def _points(
 ) -> tuple[int, int, bytes]:
     """Point count, widths byte and the packed points (first row + delta columns).
 
-    The fast path of vehicle paths (``_points_checked`` does the rest and explains
-    every refusal): five numpy calls on the row-major path (scale, round, deltas, one
-    dot product that bounds every delta, one int16 cast), then bytes slicing: the
-    low and high bytes of the int16 deltas, split into columns, are the wire's
-    1-byte columns, and a delta fits one byte iff its high byte sign-extends its low
-    byte (``bytes.translate``), instead of a min/max reduction and a cast per column.
-    Same bytes as ``_points_checked`` (``tests/protocol/test_fast_points.py``).
+    Vehicle paths go to the C packer (``protocol/_speedups.c``) when it was built, else
+    to ``_points_numpy``; whatever either declines goes to ``_points_checked``."""
+    n = points.shape[0]
+    if _C_POINTS is None or speeds is not None or not 2 <= n <= _MAX_POINTS[kind]:
+        return _points_numpy(kind, points, speeds, time_us)
+    packed: tuple[int, bytes] | None = _C_POINTS.pack(points, time_us // 1000, _MAX_COORD_F)
+    if packed is None:
+        return _points_numpy(kind, points, speeds, time_us)
+    return n, packed[0], packed[1]
+
+
+def _points_numpy(
+    kind: Kind, points: FloatArray, speeds: FloatArray | None, time_us: int
+) -> tuple[int, int, bytes]:
+    """``_points`` without the C packer: the numpy fast path of vehicle paths
+    (``_points_checked`` does the rest and explains every refusal). Five numpy calls on
+    the row-major path (scale, round, deltas, one dot product that bounds every delta,
+    one int16 cast), then bytes slicing: the low and high bytes of the int16 deltas,
+    split into columns, are the wire's 1-byte columns, and a delta fits one byte iff its
+    high byte sign-extends its low byte (``bytes.translate``), instead of a min/max
+    reduction and a cast per column. Same bytes as ``_points_checked``
+    (``tests/protocol/test_fast_points.py``).
     """
     n = points.shape[0]
     if speeds is not None or not 2 <= n <= _MAX_POINTS[kind] or points.shape != (n, 3):
@@ -600,15 +645,27 @@ def _encode_vehicle_path_fast(kind: Kind, m: VehiclePath) -> bytes | None:
     wire = _NO_LIMITS if limits is None else _LIMITS_WIRE.get(limits)
     if wire is None:
         return None
-    try:
-        x, y = round(float(m.x) * 100.0), round(float(m.y) * 100.0)
-        speed, heading = round(float(m.speed) * 100.0), round(float(m.heading) * 1e4)
-        length, width = round(float(m.length) * 100.0), round(float(m.width) * 100.0)
-    except (ValueError, OverflowError, TypeError):
-        return None
+    points = m.points
+    done: tuple[int, int, int, int, int, int, int, bytes] | None = (
+        None
+        if _C_POINTS is None or not 2 <= len(points) <= _MAX_POINTS[kind]
+        else _C_POINTS.vehicle_path(
+            points, time_us // 1000, _MAX_COORD_F, m.x, m.y, m.speed, m.heading, m.length, m.width
+        )
+    )
+    if done is not None:
+        x, y, speed, heading, length, width, widths, packed = done
+        n = len(points)
+    else:
+        try:
+            x, y = round(float(m.x) * 100.0), round(float(m.y) * 100.0)
+            speed, heading = round(float(m.speed) * 100.0), round(float(m.heading) * 1e4)
+            length, width = round(float(m.length) * 100.0), round(float(m.width) * 100.0)
+        except (ValueError, OverflowError, TypeError):
+            return None
+        n, widths, packed = _points(kind, points, None, time_us)
     if not _state_in_range(x, y, speed, heading, length, width):
         return None
-    n, widths, packed = _points(kind, m.points, None, time_us)
     lv, la, ld, ll = wire
     head = _VP_PREFIX[len(sender)].pack(
         MAGIC, FORMAT_VERSION, kind, 0, seq, time_us, len(sender), sender,
@@ -810,8 +867,9 @@ def _decode(data: bytes | bytearray | memoryview) -> Message:
     off = _HEAD.size
     sender = _read_id(buf, off, sender_len, "sender id")
     cls, args, off = _BODY_READERS[kind](buf, off + sender_len, kind, time_us)
-    header = _new_header(sender, seq, time_us, flags, _read_trailer(buf, off, flags))
-    return _NEW[cls](header, *args)
+    header = _NEW[Header](sender, seq, time_us, flags, _read_trailer(buf, off, flags))
+    message: Message = _NEW[cls](header, *args)
+    return message
 
 
 _Body = tuple[type[Message], tuple[Any, ...], int]
@@ -819,17 +877,21 @@ _Body = tuple[type[Message], tuple[Any, ...], int]
 _T = TypeVar("_T")
 
 
-def _constructor(cls: type[_T]) -> Callable[..., _T]:
+def _constructor(cls: type[_T], speedups: bool) -> Callable[..., _T]:
     """A function making a ``cls`` from all its fields in order, without ``__init__``.
 
     Only for what the decoder has validated, with fresh read-only arrays. It is
     generated from the dataclass's fields as ``dataclasses`` generates ``__init__``,
     but sets each slot through its descriptor and skips ``__post_init__``: 0.8 µs
-    instead of 2 µs for a future path, whose whole decode takes about 13 µs.
+    instead of 2 µs for a future path. With ``speedups`` the C module sets the same
+    slots through the same descriptors (``_speedups.build``): 0.3 µs.
     """
     names = [f.name for f in dataclasses.fields(cls)]  # type: ignore[arg-type]
     if not all(name.isidentifier() for name in names):
         raise TypeError(f"{cls.__name__}: unexpected field names {names}")
+    if speedups and _speedups_module is not None:
+        spec = (cls, tuple(getattr(cls, name) for name in names))
+        return functools.partial(_speedups_module.build, spec)
     scope: dict[str, Any] = {"_new": object.__new__, "_cls": cls}
     scope.update({f"_set_{name}": getattr(cls, name).__set__ for name in names})
     lines = [f"def new({', '.join(names)}):", "    obj = _new(_cls)"]
@@ -840,11 +902,12 @@ def _constructor(cls: type[_T]) -> Callable[..., _T]:
     return new
 
 
-_new_header: Final = _constructor(Header)
-_NEW: Final[dict[type, Callable[..., Message]]] = {
-    cls: _constructor(cls)
-    for cls in (FuturePath, AutonomousPath, CoordinatedPath, ModeCommand, RsuBeacon)
+_BUILT: Final = (Header, FuturePath, AutonomousPath, CoordinatedPath, ModeCommand, RsuBeacon)
+_NEW_BY_SPEEDUPS: Final[dict[bool, dict[type, Callable[..., Any]]]] = {
+    on: {cls: _constructor(cls, on) for cls in _BUILT} for on in (True, False)
 }
+_NEW: Final[dict[type, Callable[..., Any]]] = dict(_NEW_BY_SPEEDUPS[_speedups_module is not None])
+"""Class -> its constructor for decoded values (``use_speedups`` switches them)."""
 
 
 _LIMITS: Final[dict[tuple[int, int, int, int], VehicleLimits]] = {}
@@ -952,6 +1015,32 @@ _COLUMN_KEYS: Final = tuple((slice(1, None), c) for c in range(4))
 """``rows[key]``: the delta rows of column c."""
 
 
+def _vehicle_rows_numpy(
+    buf: bytes, off: int, n: int, widths: int, time_us: int
+) -> tuple[FloatArray, int] | None:
+    """The (N, 3) points at ``off`` (read-only) and the offset after them, for a known
+    delta layout and a first point in range; None for anything else. Without the C
+    packer: one accumulate over the rows and one same-shape division."""
+    plan = _PLANS.get((n, widths, 3))
+    need = None if plan is None else _PLAN_BYTES.get(plan)
+    if plan is None or need is None or off + _FIRST3.size + need > len(buf):
+        return None
+    x0, y0, t0 = _FIRST3.unpack_from(buf, off)
+    if not (-_MAX_COORD_CM <= x0 <= _MAX_COORD_CM and -_MAX_COORD_CM <= y0 <= _MAX_COORD_CM):
+        return None
+    off += _FIRST3.size
+    rows = np.empty((n, 3)) if len(plan) == 3 else np.zeros((n, 3))
+    rows[0] = (x0, y0, t0 + time_us // 1000)
+    count = n - 1
+    for c, dtype, nbytes in plan:
+        rows[_COLUMN_KEYS[c]] = np.frombuffer(buf, dtype, count, off)
+        off += nbytes
+    np.add.accumulate(rows, 0, None, rows)
+    np.divide(rows, _scale_rows(n), rows)
+    rows.setflags(write=False)
+    return rows, off
+
+
 def _decode_vehicle_path_fast(buf: bytes) -> Message | None:
     """A vehicle path of at least 2 points from a known sender with known limits and
     delta layout, with one ``struct`` call for everything before its points; None for
@@ -964,12 +1053,9 @@ def _decode_vehicle_path_fast(buf: bytes) -> Message | None:
     (_, _, kind, flags, seq, time_us, _, raw_sender, x, y, speed, heading, length, width,
      lv, la, ld, ll, mode, n, widths) = layout.unpack_from(buf, 0)  # fmt: skip
     sender = _ID_STRS.get(raw_sender)
-    plan = _PLANS.get((n, widths, 3))
     limits = None if lv == la == ld == ll == 0 else _LIMITS.get((lv, la, ld, ll))
-    x0, y0, t0 = _FIRST3.unpack_from(buf, layout.size)
     if (
         sender is None
-        or plan is None
         or (limits is None and lv | la | ld | ll)
         or not (
             2 <= n <= _MAX_VP_POINTS
@@ -981,27 +1067,25 @@ def _decode_vehicle_path_fast(buf: bytes) -> Message | None:
             and -_MAX_HEADING <= heading <= _MAX_HEADING
             and 1 <= length <= _MAX_LENGTH_CM
             and 1 <= width <= _MAX_WIDTH_CM
-            and -_MAX_COORD_CM <= x0 <= _MAX_COORD_CM
-            and -_MAX_COORD_CM <= y0 <= _MAX_COORD_CM
         )
     ):
         return None
-    off = layout.size + _FIRST3.size
-    need = _PLAN_BYTES.get(plan)
-    if need is None or off + need > size:
-        return None
-    rows = np.empty((n, 3)) if len(plan) == 3 else np.zeros((n, 3))
-    rows[0] = (x0, y0, t0 + time_us // 1000)
-    count = n - 1
-    for c, dtype, nbytes in plan:
-        rows[_COLUMN_KEYS[c]] = np.frombuffer(buf, dtype, count, off)
-        off += nbytes
-    auth = _read_trailer(buf, off, flags)
-    np.add.accumulate(rows, 0, None, rows)
-    np.divide(rows, _scale_rows(n), rows)
-    rows.setflags(write=False)
-    return _NEW[_VP_CLASSES[kind]](
-        _new_header(sender, seq, time_us, flags, auth),
+    if _C_POINTS is not None:
+        unpacked: tuple[FloatArray, int] | None = _C_POINTS.unpack(
+            buf, layout.size, n, widths, time_us // 1000, _MAX_COORD_F
+        )
+        if unpacked is None:
+            return None
+        rows, off = unpacked  # a fresh read-only array
+        auth = _read_trailer(buf, off, flags)
+    else:
+        read = _vehicle_rows_numpy(buf, layout.size, n, widths, time_us)
+        if read is None:
+            return None
+        rows, off = read
+        auth = _read_trailer(buf, off, flags)
+    message: Message = _NEW[_VP_CLASSES[kind]](
+        _NEW[Header](sender, seq, time_us, flags, auth),
         x / 100,
         y / 100,
         speed / 100,
@@ -1012,6 +1096,7 @@ def _decode_vehicle_path_fast(buf: bytes) -> Message | None:
         rows,
         limits,
     )
+    return message
 
 
 def decode(data: bytes | bytearray | memoryview) -> Message:

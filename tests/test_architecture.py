@@ -17,8 +17,14 @@ def _module_name(path: Path) -> str:
 
 
 def import_graph() -> dict[str, set[str]]:
-    """Module -> project modules it imports (every import, TYPE_CHECKING ones too)."""
-    files = {_module_name(p): p for pkg in PACKAGES for p in (ROOT / pkg).rglob("*.py")}
+    """Module -> project modules it imports (every import, TYPE_CHECKING ones too); a
+    compiled module is known by its stub (``protocol/_speedups.pyi``)."""
+    files = {
+        _module_name(p): p
+        for pkg in PACKAGES
+        for pattern in ("*.pyi", "*.py")
+        for p in (ROOT / pkg).rglob(pattern)
+    }
     graph: dict[str, set[str]] = {}
     for name, path in files.items():
         package = name if path.name == "__init__.py" else name.rpartition(".")[0]

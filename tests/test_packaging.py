@@ -31,7 +31,7 @@ pytestmark = [pytest.mark.packaging, pytest.mark.timeout(900)]  # a first instal
 ROOT = Path(__file__).resolve().parents[1]
 IGNORED = shutil.ignore_patterns(
     ".git", ".venv", "results", "build", "dist", "*.egg-info", "__pycache__", ".*_cache",
-    ".hypothesis",
+    ".hypothesis", "*.so",
 )  # fmt: skip
 """What a fresh clone does not have: the wheel is built from a clean copy, so a stale
 ``build/`` of the checkout cannot leak deleted modules into it."""
@@ -110,6 +110,16 @@ def test_the_wheel_carries_the_default_scenarios_and_no_tests(installed: Install
     assert "scenarios/__init__.py" in names
     assert "protocol/SPEC.md" in names
     assert not [n for n in names if n.startswith(("tests/", "deploy/", "results/"))]
+    # the codec's C speed-ups are compiled into the wheel, their types beside them
+    assert [n for n in names if n.startswith("protocol/_speedups.") and n.endswith(".so")]
+    assert "protocol/_speedups.pyi" in names
+
+
+def test_the_installed_codec_uses_its_c_speedups(installed: Installed) -> None:
+    code = "from protocol import codec; print(codec.speedups_available())"
+    assert _run([installed.bin / "python", "-c", code], installed.cwd, installed.env, 60) == (
+        "True\n"
+    )
 
 
 def test_the_installed_package_is_imported_not_the_checkout(installed: Installed) -> None:

@@ -5,7 +5,12 @@ straight lane, points 0.084 s apart, full-precision floats as a planner emits
 them) goes message → bytes → message in every format, in the same run:
 
 ``crosspath``
-    ``protocol.encode`` / ``protocol.decode``.
+    ``protocol.encode`` / ``protocol.decode``, with the C speed-ups of
+    ``protocol/_speedups.c`` when they were built (``c_speedups`` says whether).
+``crosspath_numpy``
+    the same functions on their numpy path (``protocol.codec.use_speedups(False)``):
+    what a machine without a C compiler at install runs, and the codec before the C
+    speed-ups; same bytes. ``speedup_c_vs_numpy`` is their ratio.
 ``paper_json``
     what the paper sent (60 KB per 120-point path): an Autoware 1.x lane dump
     as ``rospy_message_converter`` + ``json.dumps`` (default separators)
@@ -69,12 +74,14 @@ from protocol import (
     encode,
     max_points,
 )
+from protocol.codec import speedups_available, use_speedups
 from protocol.messages import FloatArray
 from services.edge.args import output_file, positive_int
 from services.edge.progress import Ticker
 
 FORMATS: dict[str, str] = {
     "crosspath": "crosspath binary codec (protocol/SPEC.md)",
+    "crosspath_numpy": "the same codec on its numpy path (no C speed-ups)",
     "paper_json": "Autoware lane dump as JSON, one Waypoint object per point (the paper)",
     "json": "compact stdlib JSON, one {x,y,t} object per point",
     "json_arrays": "compact stdlib JSON, one [x,y,t] array per point",
@@ -342,6 +349,7 @@ def paper_json_decode(data: bytes) -> FuturePath:
 
 CODECS: dict[str, tuple[Callable[[FuturePath], bytes], Callable[[bytes], Any]]] = {
     "crosspath": (encode, decode),
+    "crosspath_numpy": (encode, decode),  # timed with use_speedups(False)
     "paper_json": (paper_json_encode, paper_json_decode),
     "json": (json_encode, json_decode),
     "json_arrays": (json_arrays_encode, json_arrays_decode),
@@ -373,10 +381,15 @@ def measure(points: int = 120, repeat: int = 25, number: int = 200) -> dict[str,
             raise RuntimeError(f"{name} round trip lost points")
     enc_us: dict[str, list[float]] = {name: [] for name in CODECS}
     dec_us: dict[str, list[float]] = {name: [] for name in CODECS}
-    for _ in range(repeat):
-        for name, (enc, dec) in CODECS.items():
-            enc_us[name].append(_time_per_call(enc, message, number) * 1e6)
-            dec_us[name].append(_time_per_call(dec, payloads[name], number) * 1e6)
+    with_c = use_speedups(True)
+    try:
+        for _ in range(repeat):
+            for name, (enc, dec) in CODECS.items():
+                use_speedups(with_c and name != "crosspath_numpy")
+                enc_us[name].append(_time_per_call(enc, message, number) * 1e6)
+                dec_us[name].append(_time_per_call(dec, payloads[name], number) * 1e6)
+    finally:
+        use_speedups(with_c)
     encode_us = {name: statistics.median(v) for name, v in enc_us.items()}
     decode_us = {name: statistics.median(v) for name, v in dec_us.items()}
     both_us = {
@@ -404,6 +417,8 @@ def measure(points: int = 120, repeat: int = 25, number: int = 200) -> dict[str,
         "speedup_vs_json": speedup,
         "speedup_vs_json_arrays": both_us["json_arrays"] / both_us["crosspath"],
         "speedup_vs_msgpack": both_us["msgpack"] / both_us["crosspath"],
+        "c_speedups": speedups_available(),
+        "speedup_c_vs_numpy": both_us["crosspath_numpy"] / both_us["crosspath"],
         "size_ratio_vs_paper_json": sizes["paper_json"] / sizes["crosspath"],
         "paper_reported_bytes": PAPER_JSON_BYTES,
         "max_datagram": MAX_DATAGRAM,
@@ -450,15 +465,20 @@ def run(args: argparse.Namespace) -> int:
         f"future path, {result['points']} points; median of {args.repeat} x {args.number} calls "
         "(CPU time)"
     )
-    print(f"{'format':<12} {'bytes':>8} {'enc+dec µs':>11} {'vs crosspath':>13}")
+    print(f"{'format':<16} {'bytes':>8} {'enc+dec µs':>11} {'vs crosspath':>13}")
     ours = result["encode_decode_us"]["crosspath"]
     for name in FORMATS:
         us = result["encode_decode_us"][name]
-        print(f"{name:<12} {result['sizes_bytes'][name]:>8} {us:>11.1f} {us / ours:>12.1f}x")
+        print(f"{name:<16} {result['sizes_bytes'][name]:>8} {us:>11.1f} {us / ours:>12.1f}x")
     print(
         f"crosspath encode+decode p50 {result['encode_decode_us_p50']:.1f} µs; "
         f"speedup vs compact JSON: {result['speedup_vs_json']:.1f}x; "
-        f"size ratio vs paper JSON: {result['size_ratio_vs_paper_json']:.0f}x"
+        f"size ratio vs paper JSON: {result['size_ratio_vs_paper_json']:.0f}x; "
+        + (
+            f"C speed-ups {result['speedup_c_vs_numpy']:.1f}x the numpy path"
+            if result["c_speedups"]
+            else "C speed-ups NOT built: numpy path"
+        )
     )
     print(
         f"{result['points']}-point future path: "

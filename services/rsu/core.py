@@ -767,6 +767,21 @@ class RsuCore:
                 out.append(c)
         return out
 
+    def _touches_stuck(self, car: _Car, points: FloatArray) -> bool:
+        """``points`` (a release or promotion of ``car``) does not pass some body this RSU
+        holds standing clear by ``STUCK_PASS_M`` (:meth:`_passes_stuck`), whether or not
+        the point rule sees the two: a car held crosswise reaches 2.25 m beyond its centre,
+        and a slow path ending just short of its corner kept 4.2 m from its centre, beyond
+        the rule's 2.8 m, while 0.06 m from its body (cause 10's property, 7 December:
+        held at (-1, -4) facing east, the other north from (1.75, -12) at 0.5 m/s)."""
+        for other in self._cars.values():
+            if other is car or not other.stopping or other.speed > paths.AT_REST_MPS:
+                continue
+            entry = self.table.get(other.vehicle)
+            if entry is not None and not self._passes_stuck(car, points, other, entry.points):
+                return True
+        return False
+
     def _passes_stuck(self, car: _Car, points: FloatArray, other: _Car, entry: FloatArray) -> bool:
         """``other`` is held standing by this RSU (``C_SLOW`` on a stop, at rest, its table
         entry never moving: it moves only when this RSU releases it, which it judges against
@@ -1219,7 +1234,7 @@ class RsuCore:
             car.vehicle, plan.points, now, cfg.t_free_s, (), *self._margins, shape=car.shape
         )
         found = self._past_stuck(car, plan.points, found)
-        if found:
+        if found or self._touches_stuck(car, plan.points):
             self.counters["fast_plan_unclear"] += 1
             return None
         if self._order_clash(car, plan.points, now) is not None:
@@ -1314,6 +1329,8 @@ class RsuCore:
                 event = RsuEvent.CONFLICT
             elif self._zone_taken(car, query, now) or self._box_blocked(car, query):
                 event = RsuEvent.CONFLICT  # left alone, it would drive into a committed body
+            elif car.mode == Mode.C_SLOW and self._touches_stuck(car, query):
+                event = RsuEvent.CONFLICT  # released, it would touch a body held standing
             else:
                 event = RsuEvent.NO_CONFLICT
         out = self._apply(now, car, event, path, plan)

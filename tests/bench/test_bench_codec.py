@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from protocol import FuturePath, Kind, decode, encode, max_points
+from protocol.codec import speedups_available
 from services.bench import codec as bench
 
 REQUIRED = {
@@ -36,8 +37,12 @@ def test_measure_sizes_and_keys() -> None:
     assert set(result) >= REQUIRED
     sizes = result["sizes_bytes"]
     assert set(sizes) == set(bench.FORMATS) == set(result["encode_decode_us"])
-    assert sizes["crosspath"] == 297
+    assert sizes["crosspath"] == sizes["crosspath_numpy"] == 297
     assert sizes["crosspath"] <= 800
+    assert result["c_speedups"] is speedups_available()
+    assert result["speedup_c_vs_numpy"] == pytest.approx(
+        result["encode_decode_us"]["crosspath_numpy"] / result["encode_decode_us"]["crosspath"]
+    )
     # the paper's JSON: about 60 KB for 120 points, at least 50 times ours
     assert 50_000 <= sizes["paper_json"] <= 70_000
     assert result["size_ratio_vs_paper_json"] == sizes["paper_json"] / sizes["crosspath"]
@@ -59,7 +64,7 @@ def test_baselines_round_trip_the_message() -> None:
     for name, (enc, dec) in bench.CODECS.items():
         back = dec(enc(m))
         assert back.header.sender == m.header.sender, name
-        tolerance = 0.0051 if name == "crosspath" else 1e-6  # ours: 1 cm, 1 ms resolution
+        tolerance = 0.0051 if name.startswith("crosspath") else 1e-6  # ours: 1 cm, 1 ms resolution
         assert np.allclose(back.points, m.points, rtol=0, atol=tolerance), name
     assert decode(bench.CODECS["crosspath"][0](m)).kind is Kind.FUTURE_PATH
 

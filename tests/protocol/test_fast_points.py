@@ -117,6 +117,15 @@ def test_fast_encode_takes_every_width_layout() -> None:
     assert len(seen) >= 20
 
 
+def spoil(data: bytes, edits: list[tuple[int, int]], start: int = 0) -> bytes:
+    """``data`` with each (offset, byte) of ``edits`` at or after ``start`` written in."""
+    buf = bytearray(data)
+    for at, value in edits:
+        if start <= at < len(buf):
+            buf[at] = value
+    return bytes(buf)
+
+
 def datagrams() -> list[bytes]:
     out = [encode(m) for m in sample_messages(120).values()]
     out += [encode(m) for m in sample_messages(2).values()]
@@ -142,13 +151,9 @@ def body_offset(data: bytes) -> tuple[int, int, int, int, int]:
     st.integers(-(2**40), 2**40),
 )
 def test_fast_decode_equals_reference(data: bytes, edits: list[tuple[int, int]], dt: int) -> None:
-    buf = bytearray(data)
     off, n, widths, ncols, time_us = body_offset(data)
-    for at, value in edits:
-        if off <= at < len(buf):  # spoil the points only, keep the layout
-            buf[at] = value
     kind = Kind(data[2])
-    args = (bytes(buf), off, kind, n, widths, ncols, time_us + dt)
+    args = (spoil(data, edits, off), off, kind, n, widths, ncols, time_us + dt)  # points only
     fast = outcome(codec._read_points, *args)
     ref = outcome(reference_read_points, *args)
     if isinstance(ref, tuple) and isinstance(ref[0], str):
@@ -181,11 +186,7 @@ def test_fast_message_paths_equal_the_general_ones(
     data: bytes, edits: list[tuple[int, int]]
 ) -> None:
     """``decode``'s and ``encode``'s one-struct vehicle path shortcuts change nothing."""
-    buf = bytearray(data)
-    for at, value in edits:
-        if at < len(buf):
-            buf[at] = value
-    raw = bytes(buf)
+    raw = spoil(data, edits)
     fast = outcome(codec._decode_vehicle_path_fast, raw)
     general = outcome(codec._decode, raw)
     if fast is None or (isinstance(fast, tuple) and isinstance(general, tuple)):

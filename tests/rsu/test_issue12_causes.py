@@ -895,8 +895,11 @@ def test_cause10_no_car_that_can_stay_out_rests_in_a_box_one_stands_in(
 ) -> None:
     """Wherever a car W stands in the zone and however fast N comes, ``C_FAST``, on a path
     its own planner ends at rest with its body in the zone: if N can still keep out of
-    the zone braking hard, it is told to stop, and its stop keeps its front out of the
-    zone (unless W waits for N's body, ``_held_by``)."""
+    the zone braking hard, it is told to stop (``C_SLOW``, or a ``C_FAST`` plan that ends
+    at rest: the velocity manager stops it behind W's body), and its stop keeps its front
+    out of the zone (unless W waits for N's body, ``_held_by``). The second form was
+    found 7 December (W at (-0.5, -1) facing north, N at 8 m/s: a plan resting 3.7 m
+    short of the zone)."""
     core = RsuCore(config(), listen_s=0.0)
     w = rsu_core._Car("W", mode=Mode.C_SLOW, x=w_x, y=w_y, heading=w_heading, speed=0.0)
     w_pts = held(w_x, w_y, 0.0)
@@ -918,8 +921,9 @@ def test_cause10_no_car_that_can_stay_out_rests_in_a_box_one_stands_in(
     short = gap > 0.0 and n_v * n_v <= 2.0 * hard * (gap - n_v * velocity.REACTION_S) - 1e-6
     core.on_message(0.0, message(AutonomousPath, "N", n_pts, n_v, NORTH, Mode.C_FAST, 2), "rsu-1")
     if short:
-        assert core.mode_of("N") == Mode.C_SLOW
-        assert _front_out_of_zone(core.table.get("N").points, NORTH)  # type: ignore[union-attr]
+        entry = core.table.get("N")
+        assert entry is not None and _front_out_of_zone(entry.points, NORTH)
+        assert core.mode_of("N") == Mode.C_SLOW or paths.ends_at_rest(entry.points)
 
 
 @pytest.mark.parametrize("held_by_rsu", [True, False])
