@@ -79,7 +79,9 @@ policies, cars following their coordinated paths exactly) and cause by cause in
    it saved.
 9. A body this RSU holds standing (``C_SLOW`` on a stop, at rest) is an obstacle: a
    release or promotion may pass it by bodies, 0.1 m clear (``_passes_stuck``), though
-   within the point rule's 2.8 m of it; it moves only when this RSU releases it, judged
+   within the point rule's 2.8 m of it, and must pass it so even where the point rule
+   sees nothing (``_touches_stuck``: a body held crosswise reaches 2.25 m from its
+   centre); it moves only when this RSU releases it, judged
    against the passing car's new path. The one exception to 1 besides a car standing
    for the other (``_past_standing``); tested as a property (cause 10: no such release
    touches the held body) and by example (two held left turners, each in the other's

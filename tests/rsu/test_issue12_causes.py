@@ -12,7 +12,7 @@ from typing import TypeVar
 
 import numpy as np
 import pytest
-from hypothesis import assume, given, settings
+from hypothesis import assume, example, given, settings
 from hypothesis import strategies as st
 
 from protocol.messages import (
@@ -890,6 +890,7 @@ def test_cause10_a_car_is_not_let_rest_in_a_box_another_car_stands_in(standing: 
     n_v=st.floats(1.0, VMAX),
     n_rest=st.floats(-5.7, -1.0),
 )
+@example(w_x=-0.5, w_y=-1.0, w_heading=NORTH, n_v=8.0, n_rest=-1.0)  # a C_FAST stop, 7 Dec
 def test_cause10_no_car_that_can_stay_out_rests_in_a_box_one_stands_in(
     w_x: float, w_y: float, w_heading: float, n_v: float, n_rest: float
 ) -> None:
@@ -968,6 +969,7 @@ def test_cause10_a_car_is_released_past_a_body_this_rsu_holds(held_by_rsu: bool)
     w_heading=st.floats(-math.pi, math.pi),
     b_v=st.floats(0.5, VMAX),
 )
+@example(wx=-1.0, wy=-4.0, w_heading=0.0, b_v=0.5)  # found 7 Dec: 0.06 m, beyond the point rule
 def test_cause10_no_release_past_a_held_body_touches_it(
     wx: float, wy: float, w_heading: float, b_v: float
 ) -> None:
