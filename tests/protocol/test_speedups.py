@@ -89,6 +89,50 @@ def test_c_pack_declines_arrays_it_does_not_read() -> None:
     assert _speedups.pack(np.zeros((1025, 3)), 0, codec._MAX_COORD_F) is None
 
 
+EDGES = (-32769, -32768, -129, -128, 127, 128, 255, 256, 32767, 32768, 65535, 65536)
+"""Steps [wire units] on each side of every width's bound (int8, uint8, int16, uint16)."""
+
+
+def test_c_pack_at_every_width_edge() -> None:
+    """A step of exactly a width's bound, and one past it, in x, y and t: the C code packs
+    what the checked path packs, or declines and the checked path refuses (random floats
+    almost never land on a bound; a one-unit slip in a C comparison would)."""
+    scale = (100.0, 100.0, 1000.0)
+    for col in range(3):
+        for step in EDGES:
+            if col == 2 and step < 0:
+                continue  # time going back: refused whatever the width
+            steps = np.zeros((4, 3))
+            steps[:, 2] = 0.1
+            steps[1, col] = step / scale[col]
+            pts = np.cumsum(np.vstack([[5.0, -3.0, 12.0], steps]), axis=0)
+            checked = outcome(codec._points_checked, FP, pts, None, 12_000_000)
+            packed = _speedups.pack(pts, 12_000, codec._MAX_COORD_F)
+            if packed is None:
+                assert isinstance(checked[0], str), (col, step, checked)
+            else:
+                assert (len(pts), *packed) == checked, (col, step)
+
+
+def test_c_unpack_declines_a_body_cut_anywhere() -> None:
+    """A genuine path's points cut one byte short, or any shorter, are never read: the
+    bounds check is exact (random bytes almost never sit one byte short of the end)."""
+    for data in datagrams():
+        off, n, widths, ncols, time_us = body_offset(data)
+        if ncols != 3:
+            continue
+        whole = _speedups.unpack(data, off, n, widths, time_us // 1000, codec._MAX_COORD_F)
+        assert whole is not None
+        end = whole[1]
+        for cut in range(off, end):
+            short = data[:cut]
+            got = _speedups.unpack(short, off, n, widths, time_us // 1000, codec._MAX_COORD_F)
+            assert got is None, (cut, end)
+        padded = data[:end]
+        again = _speedups.unpack(padded, off, n, widths, time_us // 1000, codec._MAX_COORD_F)
+        assert again is not None and again[1] == end
+
+
 quantities = (
     st.floats(allow_nan=True, allow_infinity=True)
     | st.integers(-(10**6), 10**6).map(lambda k: k / 200)  # halves of a wire unit: ties
