@@ -121,16 +121,14 @@ def test_c_unpack_declines_a_body_cut_anywhere() -> None:
         off, n, widths, ncols, time_us = body_offset(data)
         if ncols != 3:
             continue
-        whole = _speedups.unpack(data, off, n, widths, time_us // 1000, codec._MAX_COORD_F)
+        layout = (off, n, widths, time_us // 1000, codec._MAX_COORD_F)
+        whole = _speedups.unpack(data, *layout)
         assert whole is not None
         end = whole[1]
         for cut in range(off, end):
-            short = data[:cut]
-            got = _speedups.unpack(short, off, n, widths, time_us // 1000, codec._MAX_COORD_F)
-            assert got is None, (cut, end)
-        padded = data[:end]
-        again = _speedups.unpack(padded, off, n, widths, time_us // 1000, codec._MAX_COORD_F)
-        assert again is not None and again[1] == end
+            assert _speedups.unpack(data[:cut], *layout) is None, (cut, end)
+        exact = _speedups.unpack(data[:end], *layout)  # nothing after the points: read whole
+        assert exact is not None and exact[1] == end
 
 
 quantities = (
