@@ -29,7 +29,12 @@ ids), ``flood_new_ids``. Per phase:
 - ``runs``, ``collisions``, ``all_finished``, ``passing_time_s`` (mean over runs, per
   car): the runs were unharmed;
 - ``refused`` / ``rate_limited`` / ``overflow``: what the receive paths dropped, and
-  ``flood_sent`` what the flooder sent.
+  ``flood_sent`` what the flooder sent. In a run the daemons declare only the run's
+  senders' keys (``DaemonShell.scope_v2x``), so the flood's fake ids reach none of them
+  and ``refused`` stays about 0; with more senders than ``MAX_SCOPED_KEYS`` they keep
+  the wildcard and refuse each datagram on the network thread instead;
+- ``cpu_pct_by_node``: each daemon's CPU time (user + system, ``/proc/<pid>/stat``) over
+  the phase's wall time [% of one core]: what receiving the flood costs it.
 
 The figures are only as good as the machine is idle: the daemons, the monitor and the
 flooder share its cores (the flooder alone takes most of one), and ``baseline`` shows
@@ -243,6 +248,15 @@ def _rss_kb(pid: int) -> int | None:
     return None
 
 
+def _cpu_s(pid: int) -> float | None:
+    """CPU time (user + system) a process has used so far [s]: /proc/<pid>/stat."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError):
+        return None
+
+
 def _actor_argv(
     scenario: Path,
     speed: float,
@@ -293,6 +307,7 @@ class _Phase:
     results: list[RunResult]
     rss: dict[str, list[int]]
     flood_sent: int
+    cpu_pct: dict[str, float]
 
 
 def _run_phase(
@@ -315,6 +330,7 @@ def _run_phase(
         time.sleep(1.5)  # the flood is on before the first run starts
     rss: dict[str, list[int]] = {node: [] for node in actors}
     results: list[RunResult] = []
+    cpu_start = {node: _cpu_s(child.pid) for node, child in actors.items()}
     start = time.monotonic()
     warm_until = start + WARMUP_S
     index = 0
@@ -339,6 +355,12 @@ def _run_phase(
                         proc.kill()
             if out.exists():
                 results.append(RunResult.model_validate_json(out.read_bytes()))
+        wall = time.monotonic() - start
+        cpu_pct: dict[str, float] = {}
+        for node, child in actors.items():
+            before, after = cpu_start[node], _cpu_s(child.pid)
+            if before is not None and after is not None and wall > 0:
+                cpu_pct[node] = round((after - before) / wall * 100.0, 1)
     finally:
         if flooder is not None:  # the flood lasts as long as the phase's runs, no longer
             stop.set()
@@ -346,7 +368,7 @@ def _run_phase(
             if flooder.is_alive():
                 flooder.terminate()
                 flooder.join(5.0)
-    return _Phase(name, results, rss, int(sent.value))
+    return _Phase(name, results, rss, int(sent.value), cpu_pct)
 
 
 def _growth_pct(samples: Sequence[int]) -> float | None:
@@ -407,6 +429,7 @@ def _summary(phase: _Phase, rsu: str) -> dict[str, Any]:
         "memory_growth_pct_max": max(known) if known else None,
         "memory_kb_end": {n: (s[-1] if s else None) for n, s in phase.rss.items()},
         "passing_time_s": {v: round(statistics.fmean(t), 3) for v, t in sorted(passing.items())},
+        "cpu_pct_by_node": dict(sorted(phase.cpu_pct.items())),
         "flood_sent": phase.flood_sent,
         **dropped,
     }

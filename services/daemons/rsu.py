@@ -122,9 +122,19 @@ class RsuDaemon(ActorDaemon[RsuDaemonConfig]):
 
     def subscribe_v2x(self) -> None:
         p = self.prefix
-        self.shell.subscribe_v2x(keyexpr.all_future_paths(prefix=p), Stream.FP, self._on_v2x)
+        me = self.node
+        # in a run, only the run's cars' keys are declared: nothing else reaches this RSU
         self.shell.subscribe_v2x(
-            keyexpr.all_autonomous_paths(self.node, prefix=p), Stream.AP, self._on_v2x
+            keyexpr.all_future_paths(prefix=p),
+            Stream.FP,
+            self._on_v2x,
+            scope=lambda start: [keyexpr.future_path(v, prefix=p) for v in start.vehicles],
+        )
+        self.shell.subscribe_v2x(
+            keyexpr.all_autonomous_paths(me, prefix=p),
+            Stream.AP,
+            self._on_v2x,
+            scope=lambda start: [keyexpr.autonomous_path(me, v, prefix=p) for v in start.vehicles],
         )
 
     def takes_part(self, start: StartRun) -> bool:

@@ -187,12 +187,30 @@ class VehicleDaemon(ActorDaemon[VehicleDaemonConfig]):
             return
         p = self.prefix
         me = self.node
+        # in a run, only the keys of the run's other cars and RSUs are declared: nothing
+        # else reaches this car (``DaemonShell.scope_v2x``)
         self._radio = [
             self.shell.subscribe_v2x(
-                keyexpr.all_future_paths(prefix=p), Stream.FP, self._on_v2x, ignore_vehicle=me
+                keyexpr.all_future_paths(prefix=p),
+                Stream.FP,
+                self._on_v2x,
+                ignore_vehicle=me,
+                scope=lambda start: [
+                    keyexpr.future_path(v, prefix=p) for v in start.vehicles if v != me
+                ],
             ),
-            self.shell.subscribe_v2x(keyexpr.all_commands(me, prefix=p), Stream.CMD, self._on_v2x),
-            self.shell.subscribe_v2x(keyexpr.all_beacons(prefix=p), Stream.BEACON, self._on_v2x),
+            self.shell.subscribe_v2x(
+                keyexpr.all_commands(me, prefix=p),
+                Stream.CMD,
+                self._on_v2x,
+                scope=lambda start: [keyexpr.rsu_command(r, me, prefix=p) for r in start.rsus],
+            ),
+            self.shell.subscribe_v2x(
+                keyexpr.all_beacons(prefix=p),
+                Stream.BEACON,
+                self._on_v2x,
+                scope=lambda start: [keyexpr.rsu_beacon(r, prefix=p) for r in start.rsus],
+            ),
         ]
 
     def _radio_off(self) -> None:

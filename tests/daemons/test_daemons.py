@@ -58,9 +58,11 @@ from services.edge.settings import CommonDaemonConfig, load_config
 from services.edge.shell import (
     MAX_AGE_S,
     MAX_FUTURE_S,
+    MAX_SCOPED_KEYS,
     UNREACHABLE_WARN_S,
     DaemonShell,
     RateLimitedLog,
+    ScopedSubscription,
     sleep_until,
     wait_event,
 )
@@ -287,6 +289,75 @@ async def test_shell_counts_garbage_oversized_spoofed_and_stale() -> None:
     snapshot = shell.stats_report(final=False).snapshot
     assert snapshot["streams"]["fp"]["malformed"] == 3
     await shell.close()
+    peer.close()
+
+
+async def test_scoped_v2x_subscriptions_declare_only_the_runs_senders() -> None:
+    """In a run a scoped subscription is declared on its senders' keys only: a datagram on
+    any other key never reaches the daemon (not even its refusal counter); between runs,
+    and for a run with more senders than MAX_SCOPED_KEYS, the wildcard."""
+    bus = MemoryBus()
+    shell = DaemonShell(
+        config(VehicleDaemonConfig, node_id="B", scenario=str(PAPER)), "test", MemoryTransport(bus)
+    )
+    await shell.open()
+    rec = Recorder()
+    scoped = shell.subscribe_v2x(
+        keyexpr.all_future_paths(),
+        Stream.FP,
+        rec,
+        ignore_vehicle="B",
+        scope=lambda start: [keyexpr.future_path(v) for v in start.vehicles if v != "B"],
+    )
+    assert isinstance(scoped, ScopedSubscription)
+    assert scoped.keys == [keyexpr.all_future_paths()]
+    peer = MemoryTransport(bus)
+    peer.open()
+    from services.edge.transport import V2X_QOS
+
+    start = start_message(vehicles=("A", "B", "C"), start_times={"A": 0.0, "B": 0.0, "C": 0.0})
+    shell.actors = frozenset((*start.vehicles, *start.rsus, start.monitor))
+    shell.scope_v2x(start)
+    assert scoped.keys == sorted([keyexpr.future_path("A"), keyexpr.future_path("C")])
+    clock = shell.begin_run(start.run_id, time.time() - 10.0, 1.0)
+    for i in range(200):  # a flood from ids that are not in the run
+        peer.publish(
+            keyexpr.future_path(f"f{i:03d}"), encode(future_path(f"f{i:03d}", 1.0)), V2X_QOS
+        )
+    peer.publish(keyexpr.future_path("A"), encode(future_path("A", clock.now())), V2X_QOS)
+    await wait_for(lambda: bool(rec.got))
+    await asyncio.sleep(0.05)
+    counts = shell.receive["fp"].stats.counts
+    assert counts["refused"] == 0 and counts["offered"] == 1
+    assert [sender for _s, sender, _t in rec.got] == ["A"]
+
+    # more senders than the bound: the wildcard, and the network-thread refusal
+    many = tuple(f"v{i}" for i in range(MAX_SCOPED_KEYS + 2))
+    shell.scope_v2x(start_message(vehicles=many, start_times=dict.fromkeys(many, 0.0)))
+    assert scoped.keys == [keyexpr.all_future_paths()]
+    for i in range(50):
+        peer.publish(
+            keyexpr.future_path(f"f{i:03d}"), encode(future_path(f"f{i:03d}", 1.0)), V2X_QOS
+        )
+    await wait_for(lambda: shell.receive["fp"].stats.counts["refused"] == 50)
+
+    shell.scope_v2x(None)  # between runs
+    assert scoped.keys == [keyexpr.all_future_paths()]
+    scoped.close()
+    assert scoped.keys == []
+    shell.scope_v2x(start)  # a closed subscription stays closed
+    assert scoped.keys == []
+    other = shell.subscribe_v2x(
+        keyexpr.all_beacons(),
+        Stream.BEACON,
+        rec,
+        scope=lambda start: ["crosspath/v2x/rsu/r/beacon"],
+    )
+    # declared in a run (as a car's radio at its insertion): the run's keys at once
+    assert isinstance(other, ScopedSubscription) and other.keys == ["crosspath/v2x/rsu/r/beacon"]
+    await shell.close()  # undeclares everything; a later run declares nothing
+    shell.scope_v2x(start)
+    assert other.keys == []
     peer.close()
 
 

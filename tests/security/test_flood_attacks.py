@@ -32,6 +32,7 @@ from services.bench.flood import FloodSpec, flood_datagrams
 from services.daemons.monitor import MonitorConfig, MonitorService
 from services.daemons.rsu import RsuDaemon, RsuDaemonConfig
 from services.daemons.vehicle import VehicleDaemon, VehicleDaemonConfig
+from services.edge import shell as shell_module
 from services.edge.lifecycle import serve
 from services.edge.plumbing import (
     PlumbingAuth,
@@ -177,10 +178,17 @@ def unharmed(monitor: MonitorService) -> dict[str, Any]:
     return result.actors or {}
 
 
+@pytest.mark.parametrize("scoped", [True, False], ids=["run-keys", "wildcard"])
 @pytest.mark.parametrize("new_ids", [False, True], ids=["500-ids", "new-id-each"])
 async def test_a_flood_of_future_paths_is_refused_and_the_run_unharmed(
-    keys: Path, new_ids: bool
+    keys: Path, new_ids: bool, scoped: bool, monkeypatch: pytest.MonkeyPatch
 ) -> None:
+    """``run-keys``: in a run every daemon declares only the run's senders' keys, so the
+    flood never reaches it; ``wildcard`` (a run with more senders than
+    ``MAX_SCOPED_KEYS``, here forced): every datagram reaches it and is refused on the
+    network thread, counted."""
+    if not scoped:
+        monkeypatch.setattr(shell_module, "MAX_SCOPED_KEYS", 0)
     flooders: list[Flooder] = []
 
     async def attack(bus: MemoryBus, done: asyncio.Event) -> None:
@@ -213,7 +221,11 @@ async def test_a_flood_of_future_paths_is_refused_and_the_run_unharmed(
     assert {car for _t, cars in rsu["table_log"] for car in cars} <= {"A", "B"}
     for node in ("rsu1", "A", "B"):
         fp = actors[node]["receive"]["fp"]
-        assert fp["refused"] > 0, node  # counted (the last report of the run)
+        if scoped:  # not one flooding datagram reached the daemon in the run
+            assert fp["refused"] == 0, node
+            assert fp["offered"] < sent / 10, node  # the genuine cars' datagrams only
+        else:
+            assert fp["refused"] > 0, node  # counted (the last report of the run)
         # the fakes never got a lane (no per-sender state): at most the two real cars,
         # each with a lane for its certificate-carrying datagrams
         assert fp["max_lanes"] <= 4, node
