@@ -327,7 +327,8 @@ class ScopedSubscription:
     that are not nodes of the run then costs the daemon nothing at all; on the wildcard
     each such datagram cost about 45 µs of CPU (Zenoh's receive path and the callback,
     measured 7 Dec) before the inbox refused it. Every key shares one receive policy
-    (limits and counters), as the wildcard did; old keys are undeclared before new ones
+    (limits and counters) as the wildcard did, each with its own bounded inbox that holds
+    only that sender's lanes (one per message kind); old keys are undeclared before new ones
     are declared, so no datagram is delivered twice (one may be missed in between: V2X
     is lossy, and a run's first datagrams come after its start delay).
     """
