@@ -25,9 +25,11 @@ the peer replays each datagram once, as described above; the inbox drops copies 
 the rate limit (``ReceivePolicy.dedupe``); the car ignores a command or coordinated
 path older than what its RSU last told it (``VehicleAgent.rsu_newest_us``).
 
-All of it is refused and counted (by car B and the RSU), and the run is unharmed: no
-collision, both cars finish, the run's mean passing time (the paper's metric) within
-1 % of the unattacked in-process run's and each car's within 2 %.
+The evil RSU's commands and the ghost car's paths never reach car B or the RSU: in a run
+they declare only the run's senders' keys. The rest is refused and counted (by car B and
+the RSU), and the run is unharmed: no collision, both cars finish, the run's mean passing
+time (the paper's metric) within 1 % of the unattacked in-process run's and each car's
+within 2 %.
 
 Why not each car within 1 %: unattacked daemon runs of this seed themselves differ
 from the harness, and from each other, by more for car B (measured on the 2-core
@@ -245,12 +247,14 @@ def test_forged_and_replayed_commands_from_an_evil_peer_are_refused(tmp_path: Pa
     assert replayed_b > 0, why
     # the replays never starved the RSU's genuine commands (each lane's rate is its own)
     assert actors["B"]["receive"]["cmd"]["rate_limited"] == 0, why
-    refused_evil = actors["B"]["receive"]["cmd"]["refused"]
-    assert refused_evil > 0  # the "evil" RSU is no node of the run
-    # the ghost car is no node of the run either: refused before decoding, at B and rsu1
-    assert actors["B"]["receive"]["fp"]["refused"] > 0
+    # the "evil" RSU and the ghost car are no nodes of the run: in a run B and rsu1 declare
+    # only the run's senders' keys (``DaemonShell.scope_v2x``), so none of what the peer
+    # sent on their keys reached them, not even their refusal counters (which count such
+    # datagrams on a wildcard: tests/security/test_flood_attacks.py)
+    assert actors["B"]["receive"]["cmd"]["refused"] == 0, why
+    assert actors["B"]["receive"]["fp"]["refused"] == 0, why
     rsu = actors["rsu1"]
-    assert rsu["receive"]["fp"]["refused"] > 0 and rsu["receive"]["ap"]["refused"] > 0
+    assert rsu["receive"]["fp"]["refused"] == 0 and rsu["receive"]["ap"]["refused"] == 0
     auth_rsu: dict[str, int] = rsu["auth"]
     # "A" parked in the zone, signed by a foreign A key; every V2X datagram replayed
     assert auth_rsu.get("bad_certificate", 0) + auth_rsu.get("unknown_key", 0) > 0, auth_rsu
