@@ -113,12 +113,18 @@ def test_the_wheel_carries_the_default_scenarios_and_no_tests(installed: Install
     # the codec's C speed-ups are compiled into the wheel, their types beside them
     assert [n for n in names if n.startswith("protocol/_speedups.") and n.endswith(".so")]
     assert "protocol/_speedups.pyi" in names
+    # and so is the reservation table's query kernel
+    assert [n for n in names if n.startswith("services/rsu/_scan.") and n.endswith(".so")]
+    assert "services/rsu/_scan.pyi" in names
 
 
 def test_the_installed_codec_uses_its_c_speedups(installed: Installed) -> None:
-    code = "from protocol import codec; print(codec.speedups_available())"
+    code = (
+        "from protocol import codec; from services.rsu import reservation; "
+        "print(codec.speedups_available(), reservation.scan_available())"
+    )
     assert _run([installed.bin / "python", "-c", code], installed.cwd, installed.env, 60) == (
-        "True\n"
+        "True True\n"
     )
 
 

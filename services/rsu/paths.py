@@ -307,6 +307,15 @@ def heading_of(xy: FloatArray, index: int) -> float | None:
     """Heading [rad] of the polyline's segment ``index`` (or the nearest one that moves
     before or after it); None for a polyline that never moves."""
     pts = np.asarray(xy, dtype=np.float64)[:, :2]
+    last = pts.shape[0] - 2  # the last segment
+    if last >= 0:
+        # the segment at ``index`` (the first or last one beyond the ends) is its own
+        # nearest when it moves: no pass over the whole polyline (issue 14)
+        j = min(max(index, 0), last)
+        dx = float(pts[j + 1, 0] - pts[j, 0])
+        dy = float(pts[j + 1, 1] - pts[j, 1])
+        if float(np.hypot(dx, dy)) > _EPS:
+            return math.atan2(dy, dx)
     seg = np.diff(pts, axis=0)
     moving = np.flatnonzero(np.hypot(seg[:, 0], seg[:, 1]) > _EPS)
     if moving.size == 0:

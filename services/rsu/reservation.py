@@ -37,6 +37,15 @@ distance, follow window), each with its own radius and band. Every bound carries
 slack far above float rounding: the search only ever adds pairs, the exact predicate
 (the one of ``_pair_conflict``) decides, so the answer equals the brute force's.
 
+The query in C (issue 14, profile-driven): at 200 cars at one intersection that numpy
+search and check paid most of their time in the fancy indexing of 6 000-25 000 candidate
+point pairs. ``services/rsu/_scan.c`` walks the same blocks, boxes and bounds in one pass
+and checks each pair with the same arithmetic (no fused multiply-add), building no pair
+list; it is built at install when there is a C compiler and used when built
+(:func:`use_scan` switches it, :func:`scan_available` says whether it was built). The
+numpy path stays the reference and the fallback: both give the same conflicts to the bit
+(``tests/rsu/test_scan.py``).
+
 Same-lane followers (ours, issue 12): ``d_margin`` is a crossing margin; two 4.5 m
 cars one behind the other in a lane overlap long before their centres are 2.8 m
 apart. So a pair of points also conflicts when:
@@ -67,12 +76,21 @@ from __future__ import annotations
 import math
 from collections.abc import Collection, Iterator, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
 from protocol.codec import MAX_COORD_M, MAX_TIME_US
 from services.model.scenario import DEFAULT_LENGTH_M, DEFAULT_WIDTH_M
+
+try:  # the query in C (services/rsu/_scan.c), built at install when there is a compiler
+    from services.rsu import _scan as _scan_module
+except ImportError:  # pragma: no cover - without a C compiler
+    _scan_module = None  # type: ignore[assignment]
+
+_SCAN: Any = _scan_module
+"""``services.rsu._scan`` when built and in use, else None (``use_scan``)."""
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -175,6 +193,20 @@ class Entry:
 
 _EMPTY: FloatArray = np.empty((0, 3), dtype=np.float64)
 _EMPTY.flags.writeable = False
+
+
+def scan_available() -> bool:
+    """Whether the query's C kernel was built (``services/rsu/_scan.c``)."""
+    return _scan_module is not None
+
+
+def use_scan(enabled: bool) -> bool:
+    """Answer queries with the C kernel (when built) or on the numpy path; the previous
+    setting. Both give the same conflicts: this exists to measure and test each."""
+    global _SCAN
+    previous = _SCAN is not None
+    _SCAN = _scan_module if enabled else None
+    return previous
 
 
 def path_headings(points: FloatArray) -> FloatArray:
@@ -861,6 +893,17 @@ class ReservationTable:
         # two searches: the crossing rule (d, headway) and the follow rule (f, window);
         # a pair that meets both may come twice, which changes no minimum below
         rules = [(d_slot * _REACH_SLACK + 1e-9, headway), (f_slot * _REACH_SLACK + 1e-9, window)]
+        if _SCAN is not None:
+            found = self._scan(
+                _SCAN,
+                (full, inside, q),
+                (now, now + horizon_s),
+                live,
+                rules,
+                (np.ascontiguousarray(d_slot), f_slot, lat_slot),
+            )
+            if found is not None:
+                return found
         pairs = [
             (rule, qi, rows)
             for rule, (qi, rows) in enumerate(self._near(q, live, rules))
@@ -953,6 +996,70 @@ class ReservationTable:
                 self_time.tolist(),
                 other_time.tolist(),
                 first.tolist(),
+                strict=True,
+            )
+        ]
+
+    def _scan(
+        self,
+        kernel: Any,
+        query: tuple[FloatArray, BoolArray, FloatArray],
+        window_s: tuple[float, float],
+        live: BoolArray,
+        rules: Sequence[tuple[FloatArray, float]],
+        exact: tuple[FloatArray, FloatArray, FloatArray],
+    ) -> list[Conflict] | None:
+        """``_batch``'s answer from the C kernel (the same conflicts, in slot order), or
+        None when the kernel refuses its arguments (the numpy path then answers).
+        ``query``: the densified path, its window mask and the points in the window;
+        ``window_s``: the window [s]; ``exact``: per slot the crossing margin, the follow
+        distance and the lane reach [m]."""
+        full, inside, q = query
+        (rad_d, headway), (rad_f, window) = rules
+        d_slot, f_slot, lat_slot = exact
+        cap = self._used.shape[0]
+        out_time = np.full(cap, np.inf)
+        out_self = np.full(cap, np.inf)
+        out_other = np.full(cap, np.inf)
+        out_first = np.full(cap, -1, dtype=np.int64)
+        params = (headway, window, *window_s, self._block_t, _SAME_WAY_COS, _REACH_SLACK)
+        n = kernel.scan(
+            np.ascontiguousarray(q),
+            np.ascontiguousarray(path_headings(full)[inside]),
+            self._dense,
+            self._head,
+            live,
+            self._b_slot,
+            self._b_k,
+            self._b_start,
+            self._b_box,
+            self._rows,
+            self._npts,
+            d_slot,
+            f_slot,
+            lat_slot,
+            rad_d,
+            rad_f,
+            params,
+            out_time,
+            out_self,
+            out_other,
+            out_first,
+        )
+        if n is None:
+            return None
+        hit = np.flatnonzero(out_first >= 0)
+        first = out_first[hit]
+        names = self._names
+        return [
+            Conflict(names[s], tm, st, ot, x, y)
+            for s, tm, st, ot, x, y in zip(
+                hit.tolist(),
+                out_time[hit].tolist(),
+                out_self[hit].tolist(),
+                out_other[hit].tolist(),
+                q[first, 0].tolist(),
+                q[first, 1].tolist(),
                 strict=True,
             )
         ]

@@ -331,6 +331,8 @@ class VelocityManager:
         self.config = config
         self.policy = Policy(config.policy)
         self.zone = paths.ConvexZone.of(config.conflict_zone)
+        # the last track's front reach: one plan asks for it up to three times (issue 14)
+        self._reach_of: tuple[_Track, float | None] | None = None
         # a car that declares no limits is planned with the scenario's [params]
         self.default_limits = VehicleLimits(
             config.v_max_mps, config.accel_mps2, config.decel_comfort_mps2, config.lat_accel_mps2
@@ -419,12 +421,14 @@ class VelocityManager:
         (its path continued straight past its end: a path that stops just before the zone
         may still hold the body's front in it); None when its front never reaches the zone
         or is already in it."""
+        memo = self._reach_of
+        if memo is not None and memo[0] is tr:  # a track is frozen, the zone fixed
+            return memo[1]
         half = 0.5 * tr.length
         s_zone = paths.zone_entry_s(tr.xy, tr.s, self.zone, half)
-        if s_zone is None:
-            return None
-        reach = s_zone - half
-        return reach if reach > 0.0 else None
+        reach = None if s_zone is None or s_zone - half <= 0.0 else s_zone - half
+        self._reach_of = (tr, reach)
+        return reach
 
     def rests_in_zone(self, tr: _Track) -> bool:
         """The autonomous path ends at rest with the car's body in the zone (its own

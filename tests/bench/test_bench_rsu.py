@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from services.bench import rsu
+from services.rsu import reservation
 
 KEYS = {
     "layout",
@@ -35,10 +36,11 @@ def test_measure_small() -> None:
         assert r["updates"] == 6 and r["naive_updates"] == 3
         assert 0 < r["us_per_update_p50"] <= r["us_per_update_p99"]
         assert r["naive_us_per_update_p50"] > 0 and r["speedup_vs_naive"] > 0
-        assert r["query_us_p50"] > 0
+        assert r["query_us_p50"] > 0 and r["query_numpy_us_p50"] > 0
         assert r["bytes_per_car"] > 0  # each car's path is kept
     assert set(doc["targets"]["met"]) == set()  # no 100 / 200 / 1000 case in this run
     assert doc["scene"]["city_intersections"] == 50
+    assert doc["scene"]["c_scan"] is reservation.scan_available()
     json.dumps(doc)  # plain JSON values only
 
 

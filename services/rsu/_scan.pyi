@@ -1,0 +1,29 @@
+"""Types of the reservation table's C query (``services/rsu/_scan.c``)."""
+
+import numpy as np
+import numpy.typing as npt
+
+def scan(
+    q: npt.NDArray[np.float64],
+    hq: npt.NDArray[np.float64],
+    dense: list[npt.NDArray[np.float64]],
+    head: list[npt.NDArray[np.float64] | None],
+    live: npt.NDArray[np.bool_],
+    b_slot: npt.NDArray[np.int32],
+    b_k: npt.NDArray[np.int64],
+    b_start: npt.NDArray[np.int32],
+    b_box: npt.NDArray[np.float32],
+    rows: int,
+    npts: npt.NDArray[np.int32],
+    d_slot: npt.NDArray[np.float64],
+    f_slot: npt.NDArray[np.float64],
+    lat_slot: npt.NDArray[np.float64],
+    rad_d: npt.NDArray[np.float64],
+    rad_f: npt.NDArray[np.float64],
+    params: tuple[float, float, float, float, float, float, float],
+    out_time: npt.NDArray[np.float64],
+    out_self: npt.NDArray[np.float64],
+    out_other: npt.NDArray[np.float64],
+    out_first: npt.NDArray[np.int64],
+    /,
+) -> int | None: ...
