@@ -405,12 +405,13 @@ class VelocityManager:
         will stand after ``reaction_s``."""
         factor = FIRM_STOP_FACTOR if firm else HARD_STOP_FACTOR
         lag = track.v0 * max(reaction_s, 0.0)
-        limit = self.stop_limit(vehicle, track, now, table, exclude, factor, lag)
+        lane = self.lane_limit(vehicle, track, now, table, exclude)  # the same for both
+        limit = self.stop_limit(vehicle, track, now, table, exclude, factor, lag, lane=lane)
         stop = self._stop(track, kind, limit, lag)
         if lag > 0.0 and not stop.short:
             # told to stop as short as it can, it still drives on ``lag`` before its
             # brakes bite: reserve where it will stand, not where it is told to
-            late = self.stop_limit(vehicle, track, now, table, exclude, factor, lag, lag)
+            late = self.stop_limit(vehicle, track, now, table, exclude, factor, lag, lag, lane=lane)
             if late > limit + _SAME_POINT_M:
                 reserved = self._stop(track, kind, late, lag).points
                 return replace(stop, reserved=reserved)
@@ -538,6 +539,8 @@ class VelocityManager:
         factor: float = HARD_STOP_FACTOR,
         lag: float = 0.0,
         overrun: float = 0.0,
+        *,
+        lane: float | None = None,
     ) -> float:
         """How far along its path [m] a stopping car may go (issue 12, cause 5): short
         of the zone (its front ``stop_gap_m`` before it, or as far before it as the brakes
@@ -552,7 +555,8 @@ class VelocityManager:
         how far the car drives on before it brakes (``REACTION_S`` at its speed, for a stop
         that is news to it): a stop short of the zone is one with that travel added.
         ``overrun`` [m]: how much further a stop that cannot stay out of the zone goes
-        (``lag`` for where the car will stand, :meth:`plan`)."""
+        (``lag`` for where the car will stand, :meth:`plan`). ``lane``: the
+        :meth:`lane_limit` of these arguments when the caller has it already."""
         limit = float(tr.s[-1]) if tr.v_ap[-1] <= 0.0 else math.inf
         reach = self.front_reach(tr)
         if reach is not None:
@@ -573,6 +577,22 @@ class VelocityManager:
                 # the turner's path; braking at 5 m/s^2 it stops 1.7 m before the zone)
                 firm = tr.v0 * tr.v0 / (2.0 * FIRM_STOP_FACTOR * tr.decel)
                 limit = min(limit, firm + overrun)
+        if lane is None:
+            lane = self.lane_limit(vehicle, tr, now, table, exclude)
+        return min(limit, lane)
+
+    def lane_limit(
+        self,
+        vehicle: str,
+        tr: _Track,
+        now: float,
+        table: ReservationTable,
+        exclude: Collection[str] = (),
+    ) -> float:
+        """:meth:`stop_limit`'s part that depends on the cars ahead only [m along the
+        path]: a follow distance behind where every car ahead of it in its lane (in the
+        table) ends its path; ``inf`` for none (issue 14: asked once per paper stop)."""
+        limit = math.inf
         if tr.xy.shape[0] < 2:
             return limit
         near = _near_lane(vehicle, tr, now, table, exclude, both_ends=True)
