@@ -39,6 +39,11 @@
 #include <stdint.h>
 #include <stdlib.h>
 
+/* Time cells (and the band in cells) beyond this are refused, so that no cast or
+   difference of them can overflow: only an absurdly small headway gets there. */
+#define CELL_LIMIT 4503599627370496.0 /* 2**52 */
+#define CELL_LIMIT_I ((int64_t)1 << 52)
+
 typedef struct {
     const char *data;
     npy_intp s0, s1, n;
@@ -151,7 +156,14 @@ static PyObject *scan(PyObject *self, PyObject *args) {
     npy_intp groups = 0;
     for (npy_intp i = 0; i < K; i++) {
         double x = at(&q, i, 0), y = at(&q, i, 1);
-        int64_t k = (int64_t)floor(at(&q, i, 2) / cell);
+        double kd = floor(at(&q, i, 2) / cell);
+        if (!(fabs(kd) < CELL_LIMIT)) { /* an absurd headway: no int64 cast of this */
+            free(g_start);
+            free(g_k);
+            free(g_box);
+            Py_RETURN_NONE;
+        }
+        int64_t k = (int64_t)kd;
         if (groups == 0 || g_k[groups - 1] != k) {
             g_start[groups] = i;
             g_k[groups] = k;
@@ -169,10 +181,14 @@ static PyObject *scan(PyObject *self, PyObject *args) {
     }
     g_start[groups] = K;
     double band = headway > window ? headway : window;
-    int64_t rt = (int64_t)ceil(band / cell);
-    if (rt < 1) {
-        rt = 1;
+    double rtd = ceil(band / cell);
+    if (!(rtd < CELL_LIMIT)) {
+        free(g_start);
+        free(g_k);
+        free(g_box);
+        Py_RETURN_NONE;
     }
+    int64_t rt = rtd < 1.0 ? 1 : (int64_t)rtd;
     long found = 0;
     int failed = 0;
     for (Py_ssize_t r = 0; r < rows && !failed; r++) {
@@ -192,6 +208,10 @@ static PyObject *scan(PyObject *self, PyObject *args) {
         const float *bx = b_box + 4 * r;
         double x0 = bx[0], x1 = bx[1], y0 = bx[2], y1 = bx[3];
         int64_t bk = b_k[r];
+        if (bk <= -CELL_LIMIT_I || bk >= CELL_LIMIT_I) {
+            failed = 1; /* never with a sane headway: the numpy path answers */
+            break;
+        }
         double t0 = (double)bk * cell, t1 = t0 + cell;
         double rd = rad_d[s], rf = rad_f[s], rmax = rd > rf ? rd : rf;
         view2 o;

@@ -120,6 +120,10 @@ LANE_SLACK_M = 0.5
 adjacent lanes, not one behind the other [m]."""
 FOLLOW_WINDOW_S = 0.3
 """Default time window of the follow rule [s] (see the module docstring)."""
+MIN_HEADWAY_S = 1e-3
+"""Smallest headway a table takes [s]: the wire's time resolution (path times are whole
+milliseconds), and it keeps every time cell index far inside int64 (a headway of 1e-300
+made the search's cell arithmetic overflow)."""
 ENDS_ROUNDING = 2.0**-24
 """Relative rounding of :meth:`ReservationTable.path_ends` (float32: half an ulp)."""
 _MAX_T_S = MAX_TIME_US / 1e6  # largest |t| [s]: the wire's bound on generation times
@@ -403,6 +407,8 @@ class ReservationTable:
         for name, value in (("d_margin_m", d_margin_m), ("headway_s", headway_s)):
             if not (math.isfinite(value) and value > 0.0):
                 raise ValueError(f"{name} must be a positive finite number, got {value!r}")
+        if headway_s < MIN_HEADWAY_S:
+            raise ValueError(f"headway_s must be at least {MIN_HEADWAY_S} s, got {headway_s!r}")
         if not (math.isfinite(expiry_s) and expiry_s > 0.0):
             raise ValueError(f"expiry_s must be a positive finite number, got {expiry_s!r}")
         self.d_margin_m = float(d_margin_m)

@@ -427,7 +427,9 @@ class VelocityManager:
             return memo[1]
         half = 0.5 * tr.length
         s_zone = paths.zone_entry_s(tr.xy, tr.s, self.zone, half)
-        reach = None if s_zone is None or s_zone - half <= 0.0 else s_zone - half
+        reach = None if s_zone is None else s_zone - half
+        if reach is not None and not reach > 0.0:
+            reach = None
         self._reach_of = (tr, reach)
         return reach
 

@@ -140,6 +140,13 @@ def test_bad_parameters_raise() -> None:
         ReservationTable(2.8, math.nan, 0.5)
     with pytest.raises(ValueError):
         ReservationTable(2.8, 1.0, -1.0)
+    with pytest.raises(ValueError, match="at least"):  # below the wire's 1 ms
+        ReservationTable(2.8, 1e-300, 0.5, follow_window_s=0.0)
+    table = ReservationTable(2.8, 1e-3, 0.5, follow_window_s=0.0)  # the smallest
+    a = np.array([[-10.0, 0.0, 0.0], [10.0, 0.0, 2.0]])
+    b = np.array([[0.0, -10.0, 0.0], [0.0, 10.0, 2.0]])
+    table.update("A", a, 0.0)
+    assert table.conflicts("B", b, 0.0, 10.0) == table.naive_conflicts("B", b, 0.0, 10.0)
 
 
 # Coordinates on a lattice of d_margin/2 and times on a lattice of headway/2 make pairs at
