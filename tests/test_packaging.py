@@ -116,15 +116,20 @@ def test_the_wheel_carries_the_default_scenarios_and_no_tests(installed: Install
     # and so is the reservation table's query kernel
     assert [n for n in names if n.startswith("services/rsu/_scan.") and n.endswith(".so")]
     assert "services/rsu/_scan.pyi" in names
+    # and a route's projection
+    assert [n for n in names if n.startswith("services/model/_polyline.") and n.endswith(".so")]
+    assert "services/model/_polyline.pyi" in names
 
 
 def test_the_installed_codec_uses_its_c_speedups(installed: Installed) -> None:
     code = (
-        "from protocol import codec; from services.rsu import reservation; "
-        "print(codec.speedups_available(), reservation.scan_available())"
+        "from protocol import codec; from services.rsu import reservation, paths; "
+        "from services.model import geometry; "
+        "print(codec.speedups_available(), reservation.scan_available(), "
+        "paths.kernel() is not None, geometry.kernel_available())"
     )
     assert _run([installed.bin / "python", "-c", code], installed.cwd, installed.env, 60) == (
-        "True True\n"
+        "True True True True\n"
     )
 
 

@@ -11,6 +11,10 @@ length x width rectangle. The front bumper is ``length / 2`` ahead of it.
 Everything here is pure and vectorised with numpy: the sensors call
 :func:`visible_mask` for hundreds of points every planning step of every car.
 Polygons (buildings, conflict zones) are convex; either vertex order is accepted.
+:meth:`Polyline.project_many` runs in C when the optional kernel
+``services/model/_polyline.c`` was built (issue 14: the planners' projections of other
+cars' future paths onto their routes); numpy stays the reference and the fallback, to the
+bit; :func:`use_kernel` switches it.
 """
 
 from __future__ import annotations
@@ -20,9 +24,18 @@ import math
 from bisect import bisect_right
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
+
+try:  # Polyline.project_many in C (services/model/_polyline.c), built when there is a compiler
+    from services.model import _polyline as _polyline_module
+except ImportError:  # pragma: no cover - without a C compiler
+    _polyline_module = None  # type: ignore[assignment]
+
+_KERNEL: Any = _polyline_module
+"""``services.model._polyline`` when built and in use, else None (:func:`use_kernel`)."""
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.intp]
@@ -60,6 +73,20 @@ KINK_SPAN_M = 4.0
 """A polyline corner is driven as if its heading change were spread over at most this
 arc length [m]: an unrounded 90° corner is then a ~2.5 m radius (a rounded one, see
 ``corner_radius_m``, has its true radius)."""
+
+
+def use_kernel(enabled: bool) -> bool:
+    """Project onto polylines in C (when built) or in numpy; the previous setting. Both
+    give the same numbers: this exists to measure and test each."""
+    global _KERNEL
+    previous = _KERNEL is not None
+    _KERNEL = _polyline_module if enabled else None
+    return previous
+
+
+def kernel_available() -> bool:
+    """Whether ``services/model/_polyline.c`` was built."""
+    return _polyline_module is not None
 
 
 def wrap_angle(a: float) -> float:
@@ -193,6 +220,12 @@ class Polyline:
         """
         p = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
         a = self.points[:-1]
+        if _KERNEL is not None:  # the same numbers, to the bit (services/model/_polyline.c)
+            fast: tuple[FloatArray, FloatArray] | None = _KERNEL.project_many(
+                a, self._unit, self._seglen, self.cumlen, p
+            )
+            if fast is not None:
+                return fast
         rel = p[:, None, :] - a[None, :, :]  # (M, S, 2)
         t = np.einsum("msk,sk->ms", rel, self._unit)  # metres along each segment
         t = np.minimum(np.maximum(t, 0.0), self._seglen[None, :])

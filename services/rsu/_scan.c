@@ -49,14 +49,14 @@ typedef struct {
     npy_intp s0, s1, n;
 } view2;
 
-/* `obj` as a view of an aligned, native float64 2-D array with `cols` columns. */
-static int as_view(PyObject *obj, int cols, view2 *v) {
+/* `obj` as a view of an aligned, native float64 2-D array with `lo` to `hi` columns */
+static int view_of(PyObject *obj, npy_intp lo, npy_intp hi, view2 *v) {
     if (!PyArray_Check(obj)) {
         return 0;
     }
     PyArrayObject *a = (PyArrayObject *)obj;
-    if (PyArray_TYPE(a) != NPY_DOUBLE || PyArray_NDIM(a) != 2 || PyArray_DIM(a, 1) != cols ||
-        !PyArray_ISNOTSWAPPED(a) || !PyArray_ISALIGNED(a)) {
+    if (PyArray_TYPE(a) != NPY_DOUBLE || PyArray_NDIM(a) != 2 || PyArray_DIM(a, 1) < lo ||
+        PyArray_DIM(a, 1) > hi || !PyArray_ISNOTSWAPPED(a) || !PyArray_ISALIGNED(a)) {
         return 0;
     }
     v->data = (const char *)PyArray_DATA(a);
@@ -64,6 +64,14 @@ static int as_view(PyObject *obj, int cols, view2 *v) {
     v->s1 = PyArray_STRIDE(a, 1);
     v->n = PyArray_DIM(a, 0);
     return 1;
+}
+
+/* ... with exactly `cols` columns */
+static int as_view(PyObject *obj, int cols, view2 *v) { return view_of(obj, cols, cols, v); }
+
+/* ... with at least `cols` columns (a path's x, y and more) */
+static int as_view_min(PyObject *obj, int cols, view2 *v) {
+    return view_of(obj, cols, NPY_MAX_INTP, v);
 }
 
 static inline double at(const view2 *v, npy_intp i, int c) {
@@ -312,14 +320,330 @@ static PyObject *scan(PyObject *self, PyObject *args) {
     return PyLong_FromLong(found);
 }
 
+/* -- the path projections (issue 14: after the query in C, paths.project_many and its
+   prefilters were a quarter of an RSU update in a jam, numpy's per-call overhead on
+   120-point paths) -------------------------------------------------------------------- */
+
+#define SEG_EPS 1e-9 /* services/rsu/paths.py: _EPS */
+
+static int all_finite(const view2 *v) {
+    for (npy_intp i = 0; i < v->n; i++) {
+        if (!isfinite(at(v, i, 0)) || !isfinite(at(v, i, 1))) {
+            return 0;
+        }
+    }
+    return 1;
+}
+
+/* segment_lengths(points) -> (N,) float64 | None: paths.segment_lengths */
+static PyObject *segment_lengths(PyObject *self, PyObject *args) {
+    PyObject *po;
+    view2 p;
+    if (!PyArg_ParseTuple(args, "O", &po)) {
+        return NULL;
+    }
+    if (!as_view_min(po, 2, &p)) {
+        Py_RETURN_NONE;
+    }
+    npy_intp dims[1] = {p.n};
+    PyObject *out = PyArray_SimpleNew(1, dims, NPY_DOUBLE);
+    if (out == NULL) {
+        return NULL;
+    }
+    double *d = (double *)PyArray_DATA((PyArrayObject *)out);
+    for (npy_intp i = 0; i < p.n; i++) {
+        d[i] = i == 0 ? 0.0
+                      : hypot(at(&p, i, 0) - at(&p, i - 1, 0), at(&p, i, 1) - at(&p, i - 1, 1));
+    }
+    return out;
+}
+
+/* farther_than(xy, x, y, reach) -> bool | None: paths.farther_than (None: an empty or
+   non-finite polyline or point, which the numpy path answers) */
+static PyObject *farther_than(PyObject *self, PyObject *args) {
+    PyObject *po;
+    double x, y, reach;
+    view2 p;
+    if (!PyArg_ParseTuple(args, "Oddd", &po, &x, &y, &reach)) {
+        return NULL;
+    }
+    if (!as_view_min(po, 2, &p) || p.n < 1 || !isfinite(x) || !isfinite(y) ||
+        !isfinite(reach) || !all_finite(&p)) {
+        Py_RETURN_NONE;
+    }
+    double nearest = INFINITY, longest = 0.0;
+    for (npy_intp i = 0; i < p.n; i++) {
+        double px = at(&p, i, 0), py = at(&p, i, 1);
+        double d = hypot(px - x, py - y);
+        nearest = d < nearest ? d : nearest;
+        if (i > 0) {
+            double l = hypot(px - at(&p, i - 1, 0), py - at(&p, i - 1, 1));
+            longest = l > longest ? l : longest;
+        }
+    }
+    double half = 0.5 * longest;
+    if (nearest - half > reach + 1e-6) {
+        Py_RETURN_TRUE;
+    }
+    Py_RETURN_FALSE;
+}
+
+/* project_many(xy, q) -> (s, dist, index) | None: paths.project_many, the same
+   arithmetic in the same order (None: an empty or non-finite polyline or query) */
+static PyObject *project_many(PyObject *self, PyObject *args) {
+    PyObject *po, *qo;
+    view2 p, q;
+    if (!PyArg_ParseTuple(args, "OO", &po, &qo)) {
+        return NULL;
+    }
+    if (!as_view_min(po, 2, &p) || !as_view_min(qo, 2, &q) || p.n < 1 || !all_finite(&p) ||
+        !all_finite(&q)) {
+        Py_RETURN_NONE;
+    }
+    npy_intp k = q.n, segs = p.n - 1;
+    npy_intp dims[1] = {k};
+    PyObject *s_out = PyArray_SimpleNew(1, dims, NPY_DOUBLE);
+    PyObject *d_out = PyArray_SimpleNew(1, dims, NPY_DOUBLE);
+    PyObject *i_out = PyArray_SimpleNew(1, dims, NPY_INT64);
+    double *seg = segs > 0 ? malloc(sizeof(double) * 5 * (size_t)segs) : NULL;
+    if (s_out == NULL || d_out == NULL || i_out == NULL || (segs > 0 && seg == NULL)) {
+        Py_XDECREF(s_out);
+        Py_XDECREF(d_out);
+        Py_XDECREF(i_out);
+        free(seg);
+        return PyErr_NoMemory();
+    }
+    double *s = (double *)PyArray_DATA((PyArrayObject *)s_out);
+    double *dist = (double *)PyArray_DATA((PyArrayObject *)d_out);
+    int64_t *index = (int64_t *)PyArray_DATA((PyArrayObject *)i_out);
+    /* per segment: length, unit x, unit y, arc length at its start, moves (1/0) */
+    int moves = 0;
+    double start = 0.0;
+    for (npy_intp i = 0; i < segs; i++) {
+        double dx = at(&p, i + 1, 0) - at(&p, i, 0), dy = at(&p, i + 1, 1) - at(&p, i, 1);
+        double len = hypot(dx, dy);
+        double *g = seg + 5 * i;
+        g[0] = len;
+        g[4] = len > SEG_EPS ? 1.0 : 0.0;
+        g[1] = g[4] != 0.0 ? dx / len : 0.0;
+        g[2] = g[4] != 0.0 ? dy / len : 0.0;
+        g[3] = start;
+        start += len;
+        moves |= g[4] != 0.0;
+    }
+    for (npy_intp j = 0; j < k; j++) {
+        double qx = at(&q, j, 0), qy = at(&q, j, 1);
+        if (!moves) {
+            s[j] = 0.0;
+            dist[j] = hypot(qx - at(&p, 0, 0), qy - at(&p, 0, 1));
+            index[j] = 0;
+            continue;
+        }
+        double best = INFINITY, best_along = 0.0;
+        npy_intp best_i = -1;
+        for (npy_intp i = 0; i < segs; i++) {
+            const double *g = seg + 5 * i;
+            if (g[4] == 0.0) {
+                continue;
+            }
+            double px = at(&p, i, 0), py = at(&p, i, 1);
+            double along = (qx - px) * g[1] + (qy - py) * g[2];
+            along = along > 0.0 ? along : 0.0;
+            along = along < g[0] ? along : g[0];
+            double d = hypot(px + g[1] * along - qx, py + g[2] * along - qy);
+            if (best_i < 0 || d < best) {
+                best = d;
+                best_i = i;
+                best_along = along;
+            }
+        }
+        s[j] = seg[5 * best_i + 3] + best_along;
+        dist[j] = best;
+        index[j] = best_i;
+    }
+    free(seg);
+    return Py_BuildValue("(NNN)", s_out, d_out, i_out);
+}
+
+/* path_headings(points) -> (N, 2) float64 | None: reservation.path_headings */
+static PyObject *path_headings(PyObject *self, PyObject *args) {
+    PyObject *po;
+    view2 p;
+    if (!PyArg_ParseTuple(args, "O", &po)) {
+        return NULL;
+    }
+    if (!as_view_min(po, 2, &p)) {
+        Py_RETURN_NONE;
+    }
+    npy_intp n = p.n;
+    npy_intp dims[2] = {n, 2};
+    PyObject *out = PyArray_SimpleNew(2, dims, NPY_DOUBLE);
+    if (out == NULL) {
+        return NULL;
+    }
+    double *o = (double *)PyArray_DATA((PyArrayObject *)out);
+    for (npy_intp i = 0; i < 2 * n; i++) {
+        o[i] = NAN;
+    }
+    if (n < 2) {
+        return out;
+    }
+    /* the unit of segment i (leaving point i) goes to row i; a segment that does not move
+       takes the last moving one before it, or the first one when none is before it */
+    npy_intp first = -1;
+    double ux = NAN, uy = NAN;
+    for (npy_intp i = 0; i < n - 1; i++) {
+        double dx = at(&p, i + 1, 0) - at(&p, i, 0), dy = at(&p, i + 1, 1) - at(&p, i, 1);
+        double len = hypot(dx, dy);
+        if (len > 1e-6) {
+            ux = dx / len;
+            uy = dy / len;
+            if (first < 0) {
+                first = i;
+                for (npy_intp j = 0; j < i; j++) {
+                    o[2 * j] = ux;
+                    o[2 * j + 1] = uy;
+                }
+            }
+        }
+        if (first >= 0) {
+            o[2 * i] = ux;
+            o[2 * i + 1] = uy;
+        }
+    }
+    if (first < 0) {
+        return out;
+    }
+    o[2 * (n - 1)] = o[2 * (n - 2)];
+    o[2 * (n - 1) + 1] = o[2 * (n - 2) + 1];
+    return out;
+}
+
+/* path_curvature(xy, s, base) -> (M,) float64 | None: paths.path_curvature, with
+   `base` its CURVE_BASE_M (None: non-finite or unsorted arc lengths, or a shape it does
+   not expect) */
+static PyObject *path_curvature(PyObject *self, PyObject *args) {
+    PyObject *po, *so;
+    double base;
+    view2 p;
+    if (!PyArg_ParseTuple(args, "OOd", &po, &so, &base)) {
+        return NULL;
+    }
+    if (!as_view_min(po, 2, &p) || !all_finite(&p) || !isfinite(base)) {
+        Py_RETURN_NONE;
+    }
+    npy_intp n = p.n;
+    const double *s = (const double *)column(so, NPY_DOUBLE, n, 0);
+    if (s == NULL || PyArray_DIM((PyArrayObject *)so, 0) != n) {
+        Py_RETURN_NONE;
+    }
+    for (npy_intp i = 0; i < n; i++) {
+        if (!isfinite(s[i]) || (i > 0 && s[i] < s[i - 1])) {
+            Py_RETURN_NONE;
+        }
+    }
+    npy_intp dims[1] = {n};
+    PyObject *out = PyArray_SimpleNew(1, dims, NPY_DOUBLE);
+    double *kappa = n > 0 ? malloc(sizeof(double) * (size_t)n) : NULL;
+    if (out == NULL || (n > 0 && kappa == NULL)) {
+        Py_XDECREF(out);
+        free(kappa);
+        return PyErr_NoMemory();
+    }
+    double *spread = (double *)PyArray_DATA((PyArrayObject *)out);
+    for (npy_intp i = 0; i < n; i++) {
+        kappa[i] = 0.0;
+        spread[i] = 0.0;
+    }
+    if (n < 3) {
+        free(kappa);
+        return out;
+    }
+    /* before: the last point with s <= s_i - base (searchsorted right, less one); after:
+       the first with s >= s_i + base (searchsorted left); both move forward with i */
+    npy_intp right = 0, left = 0;
+    for (npy_intp i = 0; i < n; i++) {
+        double lo = s[i] - base, hi = s[i] + base;
+        while (right < n && s[right] <= lo) {
+            right++;
+        }
+        while (left < n && s[left] < hi) {
+            left++;
+        }
+        npy_intp before = right - 1, after = left;
+        if (before < 0 || after >= n) {
+            continue;
+        }
+        double px = at(&p, i, 0), py = at(&p, i, 1);
+        double ax = at(&p, before, 0), ay = at(&p, before, 1);
+        double bx = at(&p, after, 0), by = at(&p, after, 1);
+        double u0 = px - ax, u1 = py - ay, w0 = bx - ax, w1 = by - ay;
+        double cross2 = fabs(u0 * w1 - u1 * w0);
+        double sides = hypot(u0, u1) * hypot(bx - px, by - py) * hypot(w0, w1);
+        kappa[i] = sides > 0.0 ? 2.0 * cross2 / sides : 0.0;
+    }
+    /* the largest within 2 base of each point: a window over the sorted arc lengths */
+    double reach = 2.0 * base;
+    for (npy_intp i = 0; i < n; i++) {
+        double m = 0.0;
+        for (npy_intp j = i; j >= 0 && fabs(s[i] - s[j]) <= reach; j--) {
+            m = kappa[j] > m ? kappa[j] : m;
+        }
+        for (npy_intp j = i + 1; j < n && fabs(s[i] - s[j]) <= reach; j++) {
+            m = kappa[j] > m ? kappa[j] : m;
+        }
+        spread[i] = m;
+    }
+    free(kappa);
+    return out;
+}
+
+/* convex_contains(xy, vertices, edges, tol) -> (M,) bool | None: paths.ConvexZone.contains
+   (vertices and edges (K, 2), counter-clockwise; a point is in when every side test is at
+   least -tol, NaN is not) */
+static PyObject *convex_contains(PyObject *self, PyObject *args) {
+    PyObject *po, *vo, *eo;
+    double tol;
+    view2 p, v, e;
+    if (!PyArg_ParseTuple(args, "OOOd", &po, &vo, &eo, &tol)) {
+        return NULL;
+    }
+    if (!as_view_min(po, 2, &p) || !as_view(vo, 2, &v) || !as_view(eo, 2, &e) || v.n != e.n) {
+        Py_RETURN_NONE;
+    }
+    npy_intp dims[1] = {p.n};
+    PyObject *out = PyArray_SimpleNew(1, dims, NPY_BOOL);
+    if (out == NULL) {
+        return NULL;
+    }
+    npy_bool *o = (npy_bool *)PyArray_DATA((PyArrayObject *)out);
+    for (npy_intp i = 0; i < p.n; i++) {
+        double x = at(&p, i, 0), y = at(&p, i, 1);
+        npy_bool in = 1;
+        for (npy_intp k = 0; k < v.n && in; k++) {
+            double cross = at(&e, k, 0) * (y - at(&v, k, 1)) - at(&e, k, 1) * (x - at(&v, k, 0));
+            in = cross >= -tol;
+        }
+        o[i] = in;
+    }
+    return out;
+}
+
 static PyMethodDef methods[] = {
     {"scan", scan, METH_VARARGS, "Conflicts of a query with the table's blocks, per slot."},
+    {"segment_lengths", segment_lengths, METH_VARARGS, "paths.segment_lengths in C."},
+    {"farther_than", farther_than, METH_VARARGS, "paths.farther_than in C."},
+    {"project_many", project_many, METH_VARARGS, "paths.project_many in C."},
+    {"path_headings", path_headings, METH_VARARGS, "reservation.path_headings in C."},
+    {"path_curvature", path_curvature, METH_VARARGS, "paths.path_curvature in C."},
+    {"convex_contains", convex_contains, METH_VARARGS, "paths.ConvexZone.contains in C."},
     {NULL, NULL, 0, NULL},
 };
 
 static struct PyModuleDef module = {
     PyModuleDef_HEAD_INIT, "services.rsu._scan",
-    "The reservation table's conflict query in C (see services/rsu/reservation.py).", -1,
+    "The reservation table's conflict query and the path projections in C (see services/rsu/reservation.py, paths.py).",
+    -1,
     methods,
 };
 

@@ -1,4 +1,4 @@
-"""Types of the reservation table's C query (``services/rsu/_scan.c``)."""
+"""Types of the reservation table's C query and the path projections (``services/rsu/_scan.c``)."""
 
 import numpy as np
 import numpy.typing as npt
@@ -27,3 +27,21 @@ def scan(
     out_first: npt.NDArray[np.int64],
     /,
 ) -> int | None: ...
+def segment_lengths(points: npt.NDArray[np.float64], /) -> npt.NDArray[np.float64] | None: ...
+def farther_than(
+    xy: npt.NDArray[np.float64], x: float, y: float, reach: float, /
+) -> bool | None: ...
+def project_many(
+    xy: npt.NDArray[np.float64], q: npt.NDArray[np.float64], /
+) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[np.int64]] | None: ...
+def path_headings(points: npt.NDArray[np.float64], /) -> npt.NDArray[np.float64] | None: ...
+def path_curvature(
+    xy: npt.NDArray[np.float64], s: npt.NDArray[np.float64], base: float, /
+) -> npt.NDArray[np.float64] | None: ...
+def convex_contains(
+    xy: npt.NDArray[np.float64],
+    vertices: npt.NDArray[np.float64],
+    edges: npt.NDArray[np.float64],
+    tol: float,
+    /,
+) -> npt.NDArray[np.bool_] | None: ...

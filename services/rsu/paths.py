@@ -12,22 +12,54 @@ segment that ends at it::
 ``retime`` applies it, ``segment_speeds`` inverts it. Zone helpers test points
 only (no segment clipping): paths have points at most a few metres apart,
 much less than the width of an intersection box.
+
+:func:`segment_lengths`, :func:`farther_than`, :func:`project_many`,
+:func:`path_curvature` and :meth:`ConvexZone.contains` (and
+``reservation.path_headings``) run in C when the optional
+kernel ``services/rsu/_scan.c`` was built (issue 14: numpy's overhead per call on
+120-point paths made them a quarter of an RSU update in a jam); the numpy code stays the
+reference and the fallback, and both give the same numbers to the bit
+(``tests/rsu/test_paths_kernel.py``). :func:`use_kernel` switches it.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
 from services.model.geometry import convex_overlap, footprint
 
+try:  # the projections in C (services/rsu/_scan.c), built at install when there is a compiler
+    from services.rsu import _scan as _kernel_module
+except ImportError:  # pragma: no cover - without a C compiler
+    _kernel_module = None  # type: ignore[assignment]
+
+_KERNEL: Any = _kernel_module
+"""``services.rsu._scan`` when built and in use, else None (:func:`use_kernel`)."""
+
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
 
-_EPS = 1e-9
+_EPS = 1e-9  # services/rsu/_scan.c: SEG_EPS
+
+
+def use_kernel(enabled: bool) -> bool:
+    """Run the projections in C (when built) or in numpy; the previous setting. Both give
+    the same numbers: this exists to measure and test each."""
+    global _KERNEL
+    previous = _KERNEL is not None
+    _KERNEL = _kernel_module if enabled else None
+    return previous
+
+
+def kernel() -> Any:
+    """``services.rsu._scan`` when built and in use (:func:`use_kernel`), else None."""
+    return _KERNEL
+
 
 APPROACH_END_M = 30.0
 """A future path ending this close to the conflict zone [m] (beyond its circumradius)
@@ -53,6 +85,10 @@ def path_curvature(xy: FloatArray, s: FloatArray) -> FloatArray:
     curvature. Not the vehicle's ``curve_speed_cap``: that one reads a route's exact
     polyline, this one noisy samples of it.
     """
+    if _KERNEL is not None:
+        fast: FloatArray | None = _KERNEL.path_curvature(xy, s, CURVE_BASE_M)
+        if fast is not None:
+            return fast
     n = xy.shape[0]
     kappa = np.zeros(n, dtype=np.float64)
     if n < 3:
@@ -136,6 +172,7 @@ class ConvexZone:
     centroid: tuple[float, float]
     tol: float
     radius: float  # [m] farthest vertex from the centroid
+    sides: tuple[tuple[float, float, float, float], ...]  # (vx, vy, ex, ey) per edge
 
     @classmethod
     def of(cls, polygon: ConvexZone | npt.ArrayLike) -> ConvexZone:
@@ -151,10 +188,20 @@ class ConvexZone:
         tol = _EPS * max(1.0, float(np.abs(arr).max()))
         cx, cy = polygon_centroid(arr)
         radius = float(np.hypot(arr[:, 0] - cx, arr[:, 1] - cy).max())
-        return cls(arr, edges, (cx, cy), tol, radius)
+        sides = tuple(
+            (vx, vy, ex, ey)
+            for (vx, vy), (ex, ey) in zip(arr.tolist(), edges.tolist(), strict=True)
+        )
+        return cls(arr, edges, (cx, cy), tol, radius, sides)
 
     def contains(self, xy: npt.ArrayLike) -> BoolArray:
-        """Which points (M, 2+) lie inside or on the edge (vectorised)."""
+        """Which points (M, 2+) lie inside or on the edge (vectorised; in C when built)."""
+        if _KERNEL is not None:
+            fast: BoolArray | None = _KERNEL.convex_contains(
+                xy, self.vertices, self.edges, self.tol
+            )
+            if fast is not None:
+                return fast
         pts = np.asarray(xy, dtype=np.float64)
         if pts.ndim == 1:
             pts = pts.reshape(1, -1)
@@ -168,7 +215,7 @@ class ConvexZone:
     def contains_point(self, x: float, y: float) -> bool:
         """One point inside or on the edge (plain floats: cheaper than numpy for one point)."""
         tol = self.tol
-        for (vx, vy), (ex, ey) in zip(self.vertices.tolist(), self.edges.tolist(), strict=True):
+        for vx, vy, ex, ey in self.sides:  # noqa: SIM110 - a NaN side test stays "inside"
             if ex * (y - vy) - ey * (x - vx) < -tol:
                 return False
         return True
@@ -181,6 +228,10 @@ def inside_convex(xy: npt.ArrayLike, polygon: ConvexZone | npt.ArrayLike) -> Boo
 
 def segment_lengths(points: FloatArray) -> FloatArray:
     """Length of the segment ending at each point [m]; 0 for the first."""
+    if _KERNEL is not None:
+        fast: FloatArray | None = _KERNEL.segment_lengths(points)
+        if fast is not None:
+            return fast
     d = np.zeros(points.shape[0], dtype=np.float64)
     if points.shape[0] > 1:
         d[1:] = np.hypot(np.diff(points[:, 0]), np.diff(points[:, 1]))
@@ -262,6 +313,10 @@ def farther_than(xy: FloatArray, x: float, y: float, reach: float) -> bool:
     columns), as :func:`project` measures it: its nearest vertex, less half the longest
     segment (a foot on a segment is within half its length of one of its ends), is. A
     cheap test before projecting (issue 14)."""
+    if _KERNEL is not None:
+        fast: bool | None = _KERNEL.farther_than(xy, x, y, reach)
+        if fast is not None:
+            return fast
     d = np.hypot(xy[:, 0] - x, xy[:, 1] - y)
     half = 0.5 * float(segment_lengths(xy).max())
     return float(d.min()) - half > reach + 1e-6
@@ -282,6 +337,12 @@ def project_many(
     """:func:`project` of every row of ``points`` (K, 2+) at once: arc lengths [m],
     distances [m] and segment indices, each (K,). One (K, M) pass instead of K calls
     (issue 14: the RSU projected a leader's path point by point)."""
+    if _KERNEL is not None:
+        fast: tuple[FloatArray, FloatArray, npt.NDArray[np.int64]] | None = _KERNEL.project_many(
+            xy, points
+        )
+        if fast is not None:
+            return fast
     pts = np.asarray(xy, dtype=np.float64)[:, :2]
     q = np.asarray(points, dtype=np.float64)[:, :2]
     k = q.shape[0]
@@ -512,12 +573,12 @@ def zone_entry_s(
     i = int(idx[0])
     if i == 0:
         return float(arc[0])
-    a, b = pts[i - 1], pts[i]
+    ax, ay = float(pts[i - 1, 0]), float(pts[i - 1, 1])
+    dx, dy = float(pts[i, 0]) - ax, float(pts[i, 1]) - ay
     lo, hi = 0.0, 1.0  # lo outside, hi inside (convex: one crossing on the segment)
-    for _ in range(30):
+    for _ in range(30):  # in floats: the same arithmetic as numpy's, without its overhead
         mid = 0.5 * (lo + hi)
-        p = a + mid * (b - a)
-        if zone.contains_point(float(p[0]), float(p[1])):
+        if zone.contains_point(ax + mid * dx, ay + mid * dy):
             hi = mid
         else:
             lo = mid

@@ -83,6 +83,7 @@ import numpy.typing as npt
 
 from protocol.codec import MAX_COORD_M, MAX_TIME_US
 from services.model.scenario import DEFAULT_LENGTH_M, DEFAULT_WIDTH_M
+from services.rsu import paths
 
 try:  # the query in C (services/rsu/_scan.c), built at install when there is a compiler
     from services.rsu import _scan as _scan_module
@@ -216,7 +217,13 @@ def use_scan(enabled: bool) -> bool:
 def path_headings(points: FloatArray) -> FloatArray:
     """Unit direction (N, 2) of travel at each point: of the segment leaving it, else of the
     last segment of positive length before it (a held stop); NaN for a path that never
-    moves (it counts as heading every way in the follow rule)."""
+    moves (it counts as heading every way in the follow rule). In C when the kernel is
+    built and in use (:func:`services.rsu.paths.use_kernel`)."""
+    kernel = paths.kernel()
+    if kernel is not None:
+        fast: FloatArray | None = kernel.path_headings(points)
+        if fast is not None:
+            return fast
     n = points.shape[0]
     out = np.full((n, 2), np.nan, dtype=np.float64)
     if n < 2:

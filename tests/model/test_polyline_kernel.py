@@ -1,0 +1,125 @@
+"""A route's projection in C (``services/model/_polyline.c``) against the numpy code it
+replaces (``Polyline.project_many``).
+
+The kernel must give numpy's numbers to the bit, or decline with None so that numpy
+answers. Without a C compiler it is not built: locally these tests then skip, on CI
+(``CI`` set) they fail, since ``make test`` builds it.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
+
+from services.model import geometry
+from services.model.geometry import Polyline
+
+if not geometry.kernel_available():
+    if os.environ.get("CI"):
+        pytest.fail("services.model._polyline was not built: make test builds it", pytrace=False)
+    pytest.skip("services.model._polyline not built (no C compiler?)", allow_module_level=True)
+
+from services.model import _polyline  # after the check above
+
+
+@pytest.fixture(autouse=True)
+def _kernel_on() -> Iterator[None]:
+    previous = geometry.use_kernel(True)
+    yield
+    geometry.use_kernel(previous)
+
+
+def _both(line: Polyline, xy: Any) -> tuple[Any, Any]:
+    geometry.use_kernel(True)
+    fast = line.project_many(xy)
+    geometry.use_kernel(False)
+    try:
+        slow = line.project_many(xy)
+    finally:
+        geometry.use_kernel(True)
+    return fast, slow
+
+
+def _same(a: tuple[np.ndarray, ...], b: tuple[np.ndarray, ...]) -> bool:
+    return all(
+        x.dtype == y.dtype
+        and x.shape == y.shape
+        and np.array_equal(x, y)
+        and np.array_equal(np.signbit(x), np.signbit(y))
+        for x, y in zip(a, b, strict=True)
+    )
+
+
+@st.composite
+def _routes(draw: st.DrawFn) -> Polyline:
+    """2-60 vertices, steps of 0.5-40 m in any direction (zig-zags, hairpins, turns)."""
+    n = draw(st.integers(2, 60))
+    angles = draw(hnp.arrays(np.float64, (n - 1,), elements=st.floats(-np.pi, np.pi)))
+    lengths = draw(hnp.arrays(np.float64, (n - 1,), elements=st.floats(0.5, 40.0)))
+    steps = np.column_stack([lengths * np.cos(angles), lengths * np.sin(angles)])
+    origin = draw(st.sampled_from([0.0, -150.0, 2500.25]))
+    return Polyline(origin + np.vstack([[0.0, 0.0], np.cumsum(steps, axis=0)]))
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    _routes(),
+    hnp.arrays(
+        np.float64, st.tuples(st.integers(0, 12), st.just(2)), elements=st.floats(-300.0, 300.0)
+    ),
+)
+def test_projection_equals_numpy(line: Polyline, offsets: np.ndarray) -> None:
+    """Points anywhere near, on the vertices, and beyond either end."""
+    pts = np.vstack([line.points[0] + offsets, line.points, line.points[[0, -1]] * 1.001])
+    fast, slow = _both(line, pts)
+    assert _same(fast, slow)
+    s, lateral = fast
+    assert np.all((s >= 0.0) & (s <= line.length))
+    on_route = np.abs(lateral[offsets.shape[0] :][: line.points.shape[0]])
+    assert np.all(on_route <= 1e-9)  # a vertex projects onto the route itself
+
+
+def test_a_point_left_of_a_straight_road_is_positive_on_both() -> None:
+    line = Polyline(np.array([[0.0, 0.0], [10.0, 0.0], [20.0, 0.0]]))
+    fast, slow = _both(line, [[12.0, 3.0], [5.0, -2.0], [25.0, 0.0]])
+    assert _same(fast, slow)
+    assert fast[0].tolist() == [12.0, 5.0, 20.0]
+    assert fast[1].tolist() == [3.0, -2.0, 5.0]
+
+
+def test_the_kernel_declines_what_it_does_not_expect() -> None:
+    line = Polyline(np.array([[0.0, 0.0], [10.0, 0.0], [20.0, 5.0]]))
+    a, u, ln, cum = line.points[:-1], line._unit, line._seglen, line.cumlen
+    p = np.array([[1.0, 1.0]])
+    assert _polyline.project_many(a, u, ln, cum, p) is not None
+    spoilt: list[tuple[Any, ...]] = [
+        (a.astype(np.float32), u, ln, cum, p),
+        (a, u[:1], ln, cum, p),  # fewer units than segments
+        (a, u, ln[:1], cum, p),  # short lengths
+        (a, u, ln, cum[:-1], p),  # short arc lengths
+        (a, u, ln, cum, p.ravel()),  # one dimension
+        (a, u, ln, cum, np.array([[np.nan, 0.0]])),  # non-finite: numpy answers
+        (a[:0], u[:0], ln[:0], cum[:1], p),  # no segment
+        (a, u, ln.astype(">f8"), cum, p),  # byte order
+        (a.tolist(), u, ln, cum, p),  # not an array
+    ]
+    for args in spoilt:
+        assert _polyline.project_many(*args) is None
+    with pytest.raises(TypeError):
+        _polyline.project_many(a, u, ln, cum)  # type: ignore[call-arg]
+    fast, slow = _both(line, np.array([[np.nan, 1.0]]))
+    assert np.isnan(fast[0][0]) and np.isnan(slow[0][0])  # numpy's answer, both ways
+
+
+def test_the_kernel_can_be_switched_off() -> None:
+    assert geometry._KERNEL is _polyline
+    assert geometry.use_kernel(False) is True
+    assert geometry._KERNEL is None
+    assert geometry.use_kernel(True) is False
