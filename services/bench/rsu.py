@@ -31,7 +31,8 @@ tenth of its time), i.e. the conflict check alone without the index.
 conservative, the update does more than the check. The query alone is timed twice: as
 the RSU runs it (``query_us_p50``: with the C kernel ``services/rsu/_scan.c`` when it was
 built, ``scene.c_scan``) and on the numpy path it replaces (``query_numpy_us_p50``, on the
-naive check's probes), the baseline of the kernel in the same run.
+naive check's probes), the baseline of the kernel in the same run. ``scene.c_paths`` says
+whether the path projections run in C too (``services.rsu.paths.use_kernel``).
 
 ``bytes_per_car``: what the RSU keeps per car, by ``tracemalloc``: the memory
 still allocated after the second half of the cars was received (the messages
@@ -56,7 +57,7 @@ import numpy as np
 from protocol.messages import FloatArray, FuturePath, Header, Mode
 from services.edge.args import non_negative_int, output_file, positive_int
 from services.edge.progress import Ticker
-from services.rsu import reservation
+from services.rsu import paths, reservation
 from services.rsu.config import RsuConfig
 from services.rsu.core import RsuCore
 
@@ -310,6 +311,7 @@ def measure(
             "points_per_path": POINTS,
             "horizon_s": HORIZON_S,
             "c_scan": reservation._SCAN is not None,
+            "c_paths": paths.kernel() is not None,
         },
         "targets": {**TARGETS, "met": met},
         "cases": results,

@@ -29,6 +29,7 @@ from typing import Any
 
 from services.edge.args import add_scenario_option, output_file, positive_int
 from services.edge.progress import Ticker
+from services.model import geometry
 from services.model.catalog import default_scenario, packaged_scenario
 from services.model.scenario import Scenario, load_scenario
 from services.model.types import Policy, RunMode
@@ -154,6 +155,7 @@ def measure(
         "seeds": seeds,
         "traffic_window_s": window_s,
         "clock": "process_time",
+        "c_polyline": geometry.kernel_available(),  # a route's projection in C
         "targets": {
             "paper_x_real_time": TARGET_PAPER_X,
             "traffic_x_real_time_at_200": TARGET_TRAFFIC_X_AT_200,

@@ -41,6 +41,7 @@ def test_measure_small() -> None:
     assert set(doc["targets"]["met"]) == set()  # no 100 / 200 / 1000 case in this run
     assert doc["scene"]["city_intersections"] == 50
     assert doc["scene"]["c_scan"] is reservation.scan_available()
+    assert doc["scene"]["c_paths"] is reservation.scan_available()  # the same module
     json.dumps(doc)  # plain JSON values only
 
 
