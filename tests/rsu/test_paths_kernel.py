@@ -132,6 +132,24 @@ def test_zone_membership_equals_numpy(
     assert not fast[-1]
 
 
+@settings(max_examples=100, deadline=None)
+@given(_polylines(), st.sampled_from(["reversed", "every-other", "fortran", "x-y-only"]))
+def test_views_of_any_layout_give_the_same_numbers(xy: np.ndarray, layout: str) -> None:
+    """Strided, reversed and column-major arrays are read where they lie, not copied."""
+    view = {
+        "reversed": xy[::-1],
+        "every-other": xy[::2],
+        "fortran": np.asfortranarray(xy),
+        "x-y-only": xy[:, :2],
+    }[layout]
+    q = view[:3, :2] + 0.5
+    assert _same(*_both(paths.project_many, view, q))
+    assert _same(*_both(paths.segment_lengths, view))
+    assert _same(*_both(reservation.path_headings, view))
+    fast, slow = _both(paths.farther_than, view, 3.0, -2.0, 1.0)
+    assert fast is slow
+
+
 def test_a_quarter_circle_gives_its_curvature_on_both() -> None:
     """A 12 m radius turn sampled every 0.5 m: the curvature is 1/12 inside the turn."""
     a = np.linspace(0.0, np.pi / 2, 40)
