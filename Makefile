@@ -7,7 +7,7 @@ OUT     ?= results
 
 .PHONY: install sysdeps lint test test-fast bench demo clean
 
-$(STAMP): pyproject.toml setup.py protocol/_speedups.c services/rsu/_scan.c services/model/_polyline.c
+$(STAMP): pyproject.toml setup.py protocol/_speedups.c services/rsu/_scan.c services/model/_geometry.c
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
 	$(BIN)/pip install -q -e '.[dev]'

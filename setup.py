@@ -1,13 +1,13 @@
 """The optional C speed-ups: of the codec (``protocol/_speedups.c``), of the RSU's
 reservation table query and path projections (``services/rsu/_scan.c``) and of a route's
-projection (``services/model/_polyline.c``); all else is in pyproject.toml.
+projection (``services/model/_geometry.c``); all else is in pyproject.toml.
 Here only because the extensions need numpy's headers, which the declarative
 ``[tool.setuptools]`` tables cannot find. ``optional=True``: without a C compiler the
 install still succeeds and ``protocol/codec.py``, ``services/rsu/`` and
 ``services/model/geometry.py`` use their numpy paths (same bytes, same numbers); ``make
 test`` on CI insists that all three were built (``tests/protocol/test_speedups.py``,
 ``tests/rsu/test_scan.py``, ``tests/rsu/test_paths_kernel.py``,
-``tests/model/test_polyline_kernel.py``).
+``tests/model/test_geometry_kernel.py``).
 """
 
 import numpy
@@ -32,8 +32,8 @@ setup(
             optional=True,
         ),
         Extension(
-            "services.model._polyline",
-            ["services/model/_polyline.c"],
+            "services.model._geometry",
+            ["services/model/_geometry.c"],
             include_dirs=[numpy.get_include()],
             extra_compile_args=["-ffp-contract=off", "-fno-fast-math"],
             optional=True,

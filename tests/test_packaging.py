@@ -117,8 +117,8 @@ def test_the_wheel_carries_the_default_scenarios_and_no_tests(installed: Install
     assert [n for n in names if n.startswith("services/rsu/_scan.") and n.endswith(".so")]
     assert "services/rsu/_scan.pyi" in names
     # and a route's projection
-    assert [n for n in names if n.startswith("services/model/_polyline.") and n.endswith(".so")]
-    assert "services/model/_polyline.pyi" in names
+    assert [n for n in names if n.startswith("services/model/_geometry.") and n.endswith(".so")]
+    assert "services/model/_geometry.pyi" in names
 
 
 def test_the_installed_codec_uses_its_c_speedups(installed: Installed) -> None:

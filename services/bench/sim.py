@@ -155,7 +155,7 @@ def measure(
         "seeds": seeds,
         "traffic_window_s": window_s,
         "clock": "process_time",
-        "c_polyline": geometry.kernel_available(),  # a route's projection in C
+        "c_geometry": geometry.kernel_available(),  # a route's projection in C
         "targets": {
             "paper_x_real_time": TARGET_PAPER_X,
             "traffic_x_real_time_at_200": TARGET_TRAFFIC_X_AT_200,

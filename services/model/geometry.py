@@ -11,10 +11,11 @@ length x width rectangle. The front bumper is ``length / 2`` ahead of it.
 Everything here is pure and vectorised with numpy: the sensors call
 :func:`visible_mask` for hundreds of points every planning step of every car.
 Polygons (buildings, conflict zones) are convex; either vertex order is accepted.
-:meth:`Polyline.project_many` runs in C when the optional kernel
-``services/model/_polyline.c`` was built (issue 14: the planners' projections of other
-cars' future paths onto their routes); numpy stays the reference and the fallback, to the
-bit; :func:`use_kernel` switches it.
+:meth:`Polyline.project_many` and :func:`any_rects_overlap` run in C when the optional
+kernel ``services/model/_geometry.c`` was built (issue 14: the planners' projections of
+other cars' future paths onto their routes, the RSU's body sweeps); numpy stays the
+reference and the fallback, with the same answers to the bit; :func:`use_kernel` switches
+it.
 """
 
 from __future__ import annotations
@@ -29,13 +30,13 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-try:  # Polyline.project_many in C (services/model/_polyline.c), built when there is a compiler
-    from services.model import _polyline as _polyline_module
+try:  # the projection and overlap kernels (services/model/_geometry.c), built with a compiler
+    from services.model import _geometry as _geometry_module
 except ImportError:  # pragma: no cover - without a C compiler
-    _polyline_module = None  # type: ignore[assignment]
+    _geometry_module = None  # type: ignore[assignment]
 
-_KERNEL: Any = _polyline_module
-"""``services.model._polyline`` when built and in use, else None (:func:`use_kernel`)."""
+_KERNEL: Any = _geometry_module
+"""``services.model._geometry`` when built and in use, else None (:func:`use_kernel`)."""
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.intp]
@@ -76,17 +77,17 @@ arc length [m]: an unrounded 90° corner is then a ~2.5 m radius (a rounded one,
 
 
 def use_kernel(enabled: bool) -> bool:
-    """Project onto polylines in C (when built) or in numpy; the previous setting. Both
-    give the same numbers: this exists to measure and test each."""
+    """Project onto polylines and test bodies' overlap in C (when built) or in numpy; the
+    previous setting. Both give the same answers: this exists to measure and test each."""
     global _KERNEL
     previous = _KERNEL is not None
-    _KERNEL = _polyline_module if enabled else None
+    _KERNEL = _geometry_module if enabled else None
     return previous
 
 
 def kernel_available() -> bool:
-    """Whether ``services/model/_polyline.c`` was built."""
-    return _polyline_module is not None
+    """Whether ``services/model/_geometry.c`` was built."""
+    return _geometry_module is not None
 
 
 def wrap_angle(a: float) -> float:
@@ -220,7 +221,7 @@ class Polyline:
         """
         p = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
         a = self.points[:-1]
-        if _KERNEL is not None:  # the same numbers, to the bit (services/model/_polyline.c)
+        if _KERNEL is not None:  # the same numbers, to the bit (services/model/_geometry.c)
             fast: tuple[FloatArray, FloatArray] | None = _KERNEL.project_many(
                 a, self._unit, self._seglen, self.cumlen, p
             )
@@ -700,6 +701,10 @@ def any_rects_overlap(a: FloatArray, b: FloatArray) -> bool:
     b = np.asarray(b, dtype=np.float64).reshape(-1, 4, 2)
     if len(a) == 0 or len(b) == 0:
         return False
+    if _KERNEL is not None:  # pair by pair, the first overlap answers; the same tests
+        fast: bool | None = _KERNEL.any_quads_overlap(a, b)
+        if fast is not None:
+            return fast
     m, k = len(a), len(b)
     pa = np.repeat(a, k, axis=0)
     pb = np.tile(b, (m, 1, 1))

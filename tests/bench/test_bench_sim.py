@@ -60,7 +60,7 @@ def test_measure_paper_and_a_short_traffic_window(monkeypatch: pytest.MonkeyPatc
     assert traffic["sim_s"] == pytest.approx(2.0, abs=0.1)  # the window, not the whole run
     assert traffic["cars_started"] <= traffic["cars"]
     assert set(doc["targets"]["met"]) == {"paper_every_mode"}
-    assert doc["c_polyline"] is geometry.kernel_available()
+    assert doc["c_geometry"] is geometry.kernel_available()
     json.dumps(doc)
 
 

@@ -1,4 +1,5 @@
-"""Types of a route's projection in C (``services/model/_polyline.c``)."""
+"""Types of a route's projection and the bodies' overlap test in C
+(``services/model/_geometry.c``)."""
 
 import numpy as np
 import numpy.typing as npt
@@ -11,3 +12,4 @@ def project_many(
     p: npt.NDArray[np.float64],
     /,
 ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]] | None: ...
+def any_quads_overlap(a: npt.NDArray[np.float64], b: npt.NDArray[np.float64], /) -> bool | None: ...

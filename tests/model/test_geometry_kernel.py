@@ -1,5 +1,5 @@
-"""A route's projection in C (``services/model/_polyline.c``) against the numpy code it
-replaces (``Polyline.project_many``).
+"""A route's projection and the bodies' overlap test in C (``services/model/_geometry.c``)
+against the numpy code they replace (``Polyline.project_many``, ``any_rects_overlap``).
 
 The kernel must give numpy's numbers to the bit, or decline with None so that numpy
 answers. Without a C compiler it is not built: locally these tests then skip, on CI
@@ -19,14 +19,14 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 from services.model import geometry
-from services.model.geometry import Polyline
+from services.model.geometry import Polyline, any_rects_overlap, footprints
 
 if not geometry.kernel_available():
     if os.environ.get("CI"):
-        pytest.fail("services.model._polyline was not built: make test builds it", pytrace=False)
-    pytest.skip("services.model._polyline not built (no C compiler?)", allow_module_level=True)
+        pytest.fail("services.model._geometry was not built: make test builds it", pytrace=False)
+    pytest.skip("services.model._geometry not built (no C compiler?)", allow_module_level=True)
 
-from services.model import _polyline  # after the check above
+from services.model import _geometry  # after the check above
 
 
 @pytest.fixture(autouse=True)
@@ -98,7 +98,7 @@ def test_the_kernel_declines_what_it_does_not_expect() -> None:
     line = Polyline(np.array([[0.0, 0.0], [10.0, 0.0], [20.0, 5.0]]))
     a, u, ln, cum = line.points[:-1], line._unit, line._seglen, line.cumlen
     p = np.array([[1.0, 1.0]])
-    assert _polyline.project_many(a, u, ln, cum, p) is not None
+    assert _geometry.project_many(a, u, ln, cum, p) is not None
     spoilt: list[tuple[Any, ...]] = [
         (a.astype(np.float32), u, ln, cum, p),
         (a, u[:1], ln, cum, p),  # fewer units than segments
@@ -111,15 +111,78 @@ def test_the_kernel_declines_what_it_does_not_expect() -> None:
         (a.tolist(), u, ln, cum, p),  # not an array
     ]
     for args in spoilt:
-        assert _polyline.project_many(*args) is None
+        assert _geometry.project_many(*args) is None
     with pytest.raises(TypeError):
-        _polyline.project_many(a, u, ln, cum)  # type: ignore[call-arg]
+        _geometry.project_many(a, u, ln, cum)  # type: ignore[call-arg]
     fast, slow = _both(line, np.array([[np.nan, 1.0]]))
     assert np.isnan(fast[0][0]) and np.isnan(slow[0][0])  # numpy's answer, both ways
 
 
 def test_the_kernel_can_be_switched_off() -> None:
-    assert geometry._KERNEL is _polyline
+    assert geometry._KERNEL is _geometry
     assert geometry.use_kernel(False) is True
     assert geometry._KERNEL is None
     assert geometry.use_kernel(True) is False
+
+
+def _overlap_both(a: np.ndarray, b: np.ndarray) -> tuple[bool, bool]:
+    geometry.use_kernel(True)
+    fast = any_rects_overlap(a, b)
+    geometry.use_kernel(False)
+    try:
+        slow = any_rects_overlap(a, b)
+    finally:
+        geometry.use_kernel(True)
+    return fast, slow
+
+
+_bodies = hnp.arrays(
+    np.float64,
+    st.tuples(st.integers(0, 6), st.just(5)),
+    elements=st.floats(-12.0, 12.0, allow_nan=False),
+)
+
+
+@settings(max_examples=400, deadline=None)
+@given(_bodies, _bodies, st.sampled_from([0.0, 0.5, 1.0]))
+def test_body_overlap_equals_numpy(a: np.ndarray, b: np.ndarray, snap: float) -> None:
+    """Cars of any pose and size 1-12 m, often touching: on a lattice (``snap`` > 0)
+    corners and edges meet exactly, the borderline the separating axis test must call as
+    numpy does (touching overlaps)."""
+    if snap:
+        a, b = np.round(a / snap) * snap, np.round(b / snap) * snap
+        a[:, 2], b[:, 2] = np.round(a[:, 2]) * (np.pi / 2), np.round(b[:, 2]) * (np.pi / 2)
+    fa = footprints(a[:, 0], a[:, 1], a[:, 2], 1.0 + np.abs(a[:, 3]), 1.0 + np.abs(a[:, 4]))
+    fb = footprints(b[:, 0], b[:, 1], b[:, 2], 1.0 + np.abs(b[:, 3]), 1.0 + np.abs(b[:, 4]))
+    fast, slow = _overlap_both(fa, fb)
+    assert fast is slow
+
+
+def test_touching_bodies_overlap_and_apart_ones_do_not_on_both() -> None:
+    one = footprints([0.0], [0.0], [0.0], [4.0], [2.0])
+    touching = footprints([4.0], [0.0], [0.0], [4.0], [2.0])  # front to back, 0 m apart
+    apart = footprints([4.0 + 1e-9], [0.0], [0.0], [4.0], [2.0])
+    diagonal = footprints([3.0], [3.0], [np.pi / 4], [4.0], [2.0])
+    assert _overlap_both(one, touching) == (True, True)
+    assert _overlap_both(one, apart) == (False, False)
+    many = np.concatenate([apart, apart, touching])  # the last pair answers
+    assert _overlap_both(one, many) == (True, True)
+    assert _overlap_both(one, diagonal) == _overlap_both(diagonal, one)
+
+
+def test_the_overlap_kernel_declines_what_it_does_not_expect() -> None:
+    one = footprints([0.0], [0.0], [0.0], [4.0], [2.0])
+    spoilt: list[Any] = [
+        one.astype(np.float32),
+        one.reshape(1, 8),
+        one[:, :3],
+        one.astype(">f8"),
+        [1],
+    ]
+    for bad in spoilt:
+        assert _geometry.any_quads_overlap(bad, one) is None
+        assert _geometry.any_quads_overlap(one, bad) is None
+    nan = one.copy()
+    nan[0, 0, 0] = np.nan
+    assert _geometry.any_quads_overlap(nan, one) is None  # numpy answers
+    assert _overlap_both(nan, one)[0] is _overlap_both(nan, one)[1]
