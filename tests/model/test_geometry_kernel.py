@@ -8,7 +8,6 @@ answers. Without a C compiler it is not built: locally these tests then skip, on
 
 from __future__ import annotations
 
-import os
 from collections.abc import Iterator
 from typing import Any
 
@@ -20,13 +19,11 @@ from hypothesis.extra import numpy as hnp
 
 from services.model import geometry
 from services.model.geometry import Polyline, any_rects_overlap, footprints
+from tests.kernels import both_ways, require_kernel
 
-if not geometry.kernel_available():
-    if os.environ.get("CI"):
-        pytest.fail("services.model._geometry was not built: make test builds it", pytrace=False)
-    pytest.skip("services.model._geometry not built (no C compiler?)", allow_module_level=True)
+require_kernel(geometry.kernel_available(), "services.model._geometry")
 
-from services.model import _geometry  # after the check above
+from services.model import _geometry  # noqa: E402 - after the check above
 
 
 @pytest.fixture(autouse=True)
@@ -37,14 +34,7 @@ def _kernel_on() -> Iterator[None]:
 
 
 def _both(line: Polyline, xy: Any) -> tuple[Any, Any]:
-    geometry.use_kernel(True)
-    fast = line.project_many(xy)
-    geometry.use_kernel(False)
-    try:
-        slow = line.project_many(xy)
-    finally:
-        geometry.use_kernel(True)
-    return fast, slow
+    return both_ways(geometry.use_kernel, line.project_many, xy)
 
 
 def _same(a: tuple[np.ndarray, ...], b: tuple[np.ndarray, ...]) -> bool:
@@ -126,13 +116,7 @@ def test_the_kernel_can_be_switched_off() -> None:
 
 
 def _overlap_both(a: np.ndarray, b: np.ndarray) -> tuple[bool, bool]:
-    geometry.use_kernel(True)
-    fast = any_rects_overlap(a, b)
-    geometry.use_kernel(False)
-    try:
-        slow = any_rects_overlap(a, b)
-    finally:
-        geometry.use_kernel(True)
+    fast, slow = both_ways(geometry.use_kernel, any_rects_overlap, a, b)
     return fast, slow
 
 

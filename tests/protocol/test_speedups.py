@@ -14,7 +14,6 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
-import os
 from typing import Any
 
 import numpy as np
@@ -24,6 +23,7 @@ from hypothesis import strategies as st
 
 from protocol import AutonomousPath, FuturePath, Header, Kind, Mode, codec, decode, encode
 from services.bench.codec import sample_messages
+from tests.kernels import require_kernel
 from tests.protocol.test_fast_points import (
     body_offset,
     datagrams,
@@ -34,12 +34,9 @@ from tests.protocol.test_fast_points import (
 )
 from tests.protocol.vectors import assert_same
 
-if not codec.speedups_available():
-    if os.environ.get("CI"):
-        pytest.fail("protocol._speedups was not built: make test builds it", pytrace=False)
-    pytest.skip("protocol._speedups not built (no C compiler?)", allow_module_level=True)
+require_kernel(codec.speedups_available(), "protocol._speedups")
 
-from protocol import _speedups  # after the check above
+from protocol import _speedups  # noqa: E402 - after the check above
 
 FP = Kind.FUTURE_PATH
 

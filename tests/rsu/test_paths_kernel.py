@@ -9,7 +9,6 @@ set) they fail, since ``make test`` builds it.
 
 from __future__ import annotations
 
-import os
 from collections.abc import Callable, Iterator
 from typing import Any
 
@@ -20,13 +19,11 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 from services.rsu import paths, reservation
+from tests.kernels import both_ways, require_kernel
 
-if not reservation.scan_available():
-    if os.environ.get("CI"):
-        pytest.fail("services.rsu._scan was not built: make test builds it", pytrace=False)
-    pytest.skip("services.rsu._scan not built (no C compiler?)", allow_module_level=True)
+require_kernel(reservation.scan_available(), "services.rsu._scan")
 
-from services.rsu import _scan  # after the check above
+from services.rsu import _scan  # noqa: E402 - after the check above
 
 
 @pytest.fixture(autouse=True)
@@ -38,14 +35,7 @@ def _kernel_on() -> Iterator[None]:
 
 def _both(fn: Callable[..., Any], *args: Any) -> tuple[Any, Any]:
     """``fn(*args)`` with the kernel, then on numpy."""
-    paths.use_kernel(True)
-    fast = fn(*args)
-    paths.use_kernel(False)
-    try:
-        slow = fn(*args)
-    finally:
-        paths.use_kernel(True)
-    return fast, slow
+    return both_ways(paths.use_kernel, fn, *args)
 
 
 def _same(a: Any, b: Any) -> bool:

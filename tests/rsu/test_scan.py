@@ -10,7 +10,6 @@ fail, since ``make test`` builds it.
 
 from __future__ import annotations
 
-import os
 from collections.abc import Iterator
 from typing import Any
 
@@ -21,14 +20,12 @@ from hypothesis import strategies as st
 
 from services.rsu import reservation
 from services.rsu.reservation import STANDARD_SHAPE, ReservationTable
+from tests.kernels import both_ways, require_kernel
 from tests.rsu.test_reservation import D, H, _path, _shape
 
-if not reservation.scan_available():
-    if os.environ.get("CI"):
-        pytest.fail("services.rsu._scan was not built: make test builds it", pytrace=False)
-    pytest.skip("services.rsu._scan not built (no C compiler?)", allow_module_level=True)
+require_kernel(reservation.scan_available(), "services.rsu._scan")
 
-from services.rsu import _scan  # after the check above
+from services.rsu import _scan  # noqa: E402 - after the check above
 
 
 @pytest.fixture(autouse=True)
@@ -40,13 +37,7 @@ def _kernel_on() -> Iterator[None]:
 
 def _both(table: ReservationTable, *args: Any, **kwargs: Any) -> tuple[list[Any], list[Any]]:
     """The table's answer with the kernel, then on its numpy path."""
-    reservation.use_scan(True)
-    fast = table.conflicts(*args, **kwargs)
-    reservation.use_scan(False)
-    try:
-        slow = table.conflicts(*args, **kwargs)
-    finally:
-        reservation.use_scan(True)
+    fast, slow = both_ways(reservation.use_scan, table.conflicts, *args, **kwargs)
     return fast, slow
 
 
