@@ -629,6 +629,48 @@ static PyObject *convex_contains(PyObject *self, PyObject *args) {
     return out;
 }
 
+/* within_bounds(points, coord, t_max) -> bool | None: reservation.within_wire_bounds for
+   an (N, 3) path: every value finite, |x| and |y| <= coord, |t| <= t_max */
+static PyObject *within_bounds(PyObject *self, PyObject *args) {
+    PyObject *po;
+    double coord, t_max;
+    view2 p;
+    if (!PyArg_ParseTuple(args, "Odd", &po, &coord, &t_max)) {
+        return NULL;
+    }
+    if (!as_view(po, 3, &p)) {
+        Py_RETURN_NONE;
+    }
+    for (npy_intp i = 0; i < p.n; i++) {
+        double x = at(&p, i, 0), y = at(&p, i, 1), t = at(&p, i, 2);
+        if (!isfinite(x) || !isfinite(y) || !isfinite(t) || fabs(x) > coord ||
+            fabs(y) > coord || fabs(t) > t_max) {
+            Py_RETURN_FALSE;
+        }
+    }
+    Py_RETURN_TRUE;
+}
+
+/* gap_over(points, max_dt) -> bool | None: whether two consecutive times of an (N, 3+)
+   path are more than max_dt apart (reservation.densify's test: t[i+1] - t[i] > max_dt) */
+static PyObject *gap_over(PyObject *self, PyObject *args) {
+    PyObject *po;
+    double max_dt;
+    view2 p;
+    if (!PyArg_ParseTuple(args, "Od", &po, &max_dt)) {
+        return NULL;
+    }
+    if (!as_view_min(po, 3, &p)) {
+        Py_RETURN_NONE;
+    }
+    for (npy_intp i = 0; i + 1 < p.n; i++) {
+        if (at(&p, i + 1, 2) - at(&p, i, 2) > max_dt) {
+            Py_RETURN_TRUE;
+        }
+    }
+    Py_RETURN_FALSE;
+}
+
 static PyMethodDef methods[] = {
     {"scan", scan, METH_VARARGS, "Conflicts of a query with the table's blocks, per slot."},
     {"segment_lengths", segment_lengths, METH_VARARGS, "paths.segment_lengths in C."},
@@ -637,6 +679,8 @@ static PyMethodDef methods[] = {
     {"path_headings", path_headings, METH_VARARGS, "reservation.path_headings in C."},
     {"path_curvature", path_curvature, METH_VARARGS, "paths.path_curvature in C."},
     {"convex_contains", convex_contains, METH_VARARGS, "paths.ConvexZone.contains in C."},
+    {"within_bounds", within_bounds, METH_VARARGS, "reservation.within_wire_bounds in C."},
+    {"gap_over", gap_over, METH_VARARGS, "reservation.densify's gap test in C."},
     {NULL, NULL, 0, NULL},
 };
 

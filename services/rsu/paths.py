@@ -14,8 +14,8 @@ only (no segment clipping): paths have points at most a few metres apart,
 much less than the width of an intersection box.
 
 :func:`segment_lengths`, :func:`farther_than`, :func:`project_many`,
-:func:`path_curvature` and :meth:`ConvexZone.contains` (and
-``reservation.path_headings``) run in C when the optional
+:func:`path_curvature` and :meth:`ConvexZone.contains` (and ``reservation``'s
+``path_headings``, ``within_wire_bounds`` and ``densify``'s gap test) run in C when the optional
 kernel ``services/rsu/_scan.c`` was built (issue 14: numpy's overhead per call on
 120-point paths made them a quarter of an RSU update in a jam); the numpy code stays the
 reference and the fallback, and both give the same numbers to the bit

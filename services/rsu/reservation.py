@@ -135,7 +135,13 @@ _OUT_OF_BOUNDS = (
 
 def within_wire_bounds(points: FloatArray) -> bool:
     """True when the (N, 3) x, y, t ``points`` are finite and within what the wire can
-    carry: |x|, |y| <= ``protocol.codec.MAX_COORD_M`` [m], |t| <= ``MAX_TIME_US`` [s]."""
+    carry: |x|, |y| <= ``protocol.codec.MAX_COORD_M`` [m], |t| <= ``MAX_TIME_US`` [s]. In
+    C when the kernel is built and in use (:func:`services.rsu.paths.use_kernel`)."""
+    kernel = paths.kernel()
+    if kernel is not None:
+        fast: bool | None = kernel.within_bounds(points, MAX_COORD_M, _MAX_T_S)
+        if fast is not None:
+            return fast
     if not np.all(np.isfinite(points)):
         return False
     if not points.size:
@@ -259,6 +265,9 @@ def densify(points: FloatArray, max_dt: float = MAX_POINT_GAP_S) -> FloatArray:
     n = points.shape[0]
     if n < 2:
         return points
+    kernel = paths.kernel()
+    if kernel is not None and kernel.gap_over(points, max_dt) is False:
+        return points  # the common case, without numpy's overhead (issue 14)
     dt = np.diff(points[:, 2])
     long = dt > max_dt
     if not long.any():

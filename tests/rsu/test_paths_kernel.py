@@ -140,6 +140,39 @@ def test_views_of_any_layout_give_the_same_numbers(xy: np.ndarray, layout: str) 
     assert fast is slow
 
 
+_wire_values = st.one_of(
+    st.floats(-2e6, 2e6),  # within and beyond the wire's bounds
+    st.sampled_from([0.0, -0.0, 1e300, -1e300]),
+    st.floats(allow_nan=True, allow_infinity=True),
+)
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    hnp.arrays(np.float64, st.tuples(st.integers(0, 20), st.just(3)), elements=_wire_values),
+    st.sampled_from(["c", "fortran", "reversed"]),
+)
+def test_the_wire_bounds_check_equals_numpy(points: np.ndarray, layout: str) -> None:
+    """Finite, |x|, |y| <= MAX_COORD_M and |t| <= the wire's time bound, values anywhere."""
+    view = {"c": points, "fortran": np.asfortranarray(points), "reversed": points[::-1]}[layout]
+    fast, slow = _both(reservation.within_wire_bounds, view)
+    assert fast is slow
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    st.lists(st.floats(0.0, 1.2), min_size=0, max_size=40),
+    st.sampled_from([0.5, 0.1, 1.0]),
+)
+def test_densify_equals_numpy(steps: list[float], max_dt: float) -> None:
+    """Times 0-1.2 s apart, so that some gaps are over the limit and some exactly on it."""
+    t = np.cumsum(np.array([0.0, *steps]))
+    points = np.column_stack([np.arange(t.shape[0]) * 0.7, -0.3 * t, t])
+    fast, slow = _both(reservation.densify, points, max_dt)
+    assert _same(fast, slow)
+    assert (fast is points) is (slow is points)  # the same array when no gap is long
+
+
 def test_a_quarter_circle_gives_its_curvature_on_both() -> None:
     """A 12 m radius turn sampled every 0.5 m: the curvature is 1/12 inside the turn."""
     a = np.linspace(0.0, np.pi / 2, 40)
@@ -179,6 +212,8 @@ def test_the_kernel_declines_what_it_does_not_expect() -> None:
         assert _scan.path_curvature(bad, np.zeros(3), 2.0) is None
         assert _scan.convex_contains(bad, good[:, :2].copy(), good[:, :2].copy(), 0.0) is None
         assert _scan.convex_contains(q, bad, good[:, :2].copy(), 0.0) is None
+        assert _scan.within_bounds(bad, 1.0, 1.0) is None
+        assert _scan.gap_over(bad, 0.5) is None
     empty = np.empty((0, 3))
     assert _scan.project_many(empty, q) is None
     assert _scan.farther_than(empty, 0.0, 0.0, 1.0) is None
