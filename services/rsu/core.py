@@ -209,6 +209,16 @@ demand, 120 s to clear, finished of inserted): 600 veh/h seeds 0-4, paper 180 ->
 turner lock above (paper, 800, seed 8 at 56 s; 600, seed 9): cars with their noses in
 the box kept the way and more of them entered it at once.
 
+Fixed (8 Dec), at its source in the car: the opposing-left-turner lock above. Each
+turner's autonomous path rested a stopping distance behind its straight leader (the
+planner braked for the leader as if it might stop hard now), so its turn reached the table
+only when the leader had gone. The autonomous path now follows the car ahead by that car's
+future path (``services.vehicle.planner``, ``_follow_cap``), and a follower's turn is in the
+table as soon as its leader's path runs through the box: turning 600 veh/h, seeds 0-4,
+paper 180 -> 197 of 201 cars finished, slot 198 -> 198; turning 800 veh/h, seeds 5-9, paper
+218 -> 240 and slot 196 -> 230 of 245; no lock and no collision in those runs (README,
+"Turns at high demand"). No rule here changed.
+
 Status: the property holds for both policies in the derandomized examples and for the two
 cases random search once found under ``paper`` (``FOUND_BY_SEARCH``: the follow rule's lane
 was measured across the asking car's heading only; ``FOUND_BY_SEARCH_TURN``: a stop that

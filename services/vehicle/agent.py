@@ -388,9 +388,11 @@ class VehicleAgent:
             # the autonomous path for the RSU: this car's own plan to its goal, without the
             # blind-corner caution and the yield stops that the RSU's coordination replaces
             # (its positions must run through the intersection for a coordinated path to be
-            # built on them)
+            # built on them), following the car ahead by that car's future path where it is
+            # known (issue 12: braked for as if it might stop hard now, a follower's turn
+            # reached the RSU only when it could no longer stay out of the box)
             autonomous = self.planner.plan(
-                now, ego, sensed, {}, Coordination(lift_caution=True, skip_yield=True)
+                now, ego, sensed, {}, Coordination(lift_caution=True, skip_yield=True, follow=fps)
             )
             target_v = c.target_v
             if target_v is not None and c.target_s is not None and now < c.hold_until:

@@ -74,6 +74,14 @@ Our interpretation where DESIGN.md is silent (also in the README):
   profile their start gap apart all the way in.
 - A yield can only be planned while the car can still stop before the stop
   line with emergency deceleration; past that point it is committed.
+- The autonomous path sent to the RSU follows a car ahead in this lane by that
+  car's future path where it is known (``Coordination.follow``, ``_follow_cap``):
+  at each place no faster than the leader went one follow distance further on, and
+  stopped that far (and a grid step) behind where the leader's path rests in this
+  lane. Braking for the leader as if it might stop hard now, as the plan the car
+  drives does (rule 4), made a follower's path rest a stopping distance behind its
+  leader, so the RSU saw a turn behind a straight car only 1-2 m from the box, when
+  neither of two opposing left turners could stay out any more (issue 12).
 """
 
 from __future__ import annotations
@@ -126,6 +134,9 @@ APPROACH_PROBE_M = 2.0
 COMMIT_MARGIN_M = 0.3
 """A car that cannot stop this far before the conflict zone braking at the emergency
 limit is committed: it goes first [m]."""
+
+FOLLOW_REST_MPS = 0.25
+"""A future path slower than this over its last stretch rests there (``_follow_cap``) [m/s]."""
 
 SIDE_MARGIN_M = 0.3
 """A sensed car this close beside the car's swept body counts as on its path: brake for
@@ -198,6 +209,13 @@ class Coordination:
     target_s: FloatArray | None = None  # coordinated target speeds by route arc length
     target_v: FloatArray | None = None
     skip_yield: bool = False
+    follow: Mapping[str, FuturePath] | None = None
+    """Future paths by vehicle id: a car ahead in this lane whose path is here is
+    followed by that path instead of braked for as if it might stop hard now
+    (``_follow_cap``). For the autonomous path sent to the RSU, which then sees where a
+    follower goes behind its leader through the intersection, not only where it could
+    stop (issue 12, the opposing-left-turner lock); the plan the car drives keeps the
+    sensed caps."""
 
 
 @dataclass(slots=True)
@@ -308,7 +326,7 @@ class AutonomousPlanner:
                     constraints.append(
                         _Constraint(Reason.CAUTION, np.maximum(cap, creep), crossing.intersection)
                     )
-        emergency = self._emergency_caps(s, ego, sensed)
+        emergency = self._emergency_caps(s, ego, sensed, coordination.follow)
         constraints.extend(emergency)
 
         unyielded = self._combine(now, s, v0, constraints)
@@ -435,9 +453,15 @@ class AutonomousPlanner:
         return True
 
     def _emergency_caps(
-        self, s: FloatArray, ego: TruthState, sensed: Sequence[TruthState]
+        self,
+        s: FloatArray,
+        ego: TruthState,
+        sensed: Sequence[TruthState],
+        follow: Mapping[str, FuturePath] | None = None,
     ) -> list[_Constraint]:
-        """Brake (up to the emergency limit) for any sensed car whose footprint is on the path."""
+        """Brake (up to the emergency limit) for any sensed car whose footprint is on the
+        path; a car ahead going this way whose future path is in ``follow`` is followed
+        by that path instead (``_follow_cap``)."""
         out: list[_Constraint] = []
         lim = self.limits
         half_w = self.width / 2.0 + SIDE_MARGIN_M
@@ -464,6 +488,12 @@ class AutonomousPlanner:
                 s_obs = float(np.min(cs[on_path]))
             # a car moving the same way keeps going: allow its stopping distance
             rel = float(np.cos(other.heading - self.route.heading_at(s_obs)))
+            fp = None if follow is None or rel <= 0.7 else follow.get(other.id)
+            if fp is not None and in_way:
+                by_path = self._follow_cap(s, ego, fp, other.length)
+                if by_path is not None:
+                    out.append(_Constraint(Reason.EMERGENCY, by_path, other.id))
+                    continue
             extra = other.speed**2 / (2.0 * lim.decel_emergency) if rel > 0.7 else 0.0
             s_stop = s_obs + extra - self.length / 2.0 - self.params.emergency_gap_m
             if s_stop - ego.s > 60.0:
@@ -475,6 +505,55 @@ class AutonomousPlanner:
                 cap = np.maximum(cap, min(self.params.creep_mps, lim.v_max))
             out.append(_Constraint(Reason.EMERGENCY, cap, other.id))
         return out
+
+    def _follow_cap(
+        self, s: FloatArray, ego: TruthState, fp: FuturePath, other_length: float
+    ) -> FloatArray | None:
+        """Speed cap [m/s] on ``s`` for following the car ahead by its future path
+        ``fp``: at each place this car goes no faster than that car went one follow
+        distance further on (half the two lengths plus ``emergency_gap_m``), and stops that
+        far behind where its path rests while still in this lane. A queue discharges so,
+        each car pulling away from where the one ahead did. Only the stretch of ``fp``
+        that runs along this route (within half this car's width plus ``SIDE_MARGIN_M``,
+        from its first point on) counts: where it turns off, this car's own way is free.
+        None when fewer than two points of it lie ahead in this lane."""
+        pts = fp.points
+        if pts.shape[0] < 2:
+            return None
+        cs, lat = self.route.project_many(pts[:, :2])
+        on = (np.abs(lat) <= self.width / 2.0 + SIDE_MARGIN_M) & (cs > ego.s)
+        off = np.flatnonzero(~on)
+        k = int(off[0]) if off.size else int(pts.shape[0])
+        if k < 2:
+            return None
+        s_l, t_l = cs[:k], pts[:k, 2]
+        ds_l, dt_l = np.diff(s_l), np.diff(t_l)
+        if bool(np.any(ds_l < -0.05)):
+            return None  # not a path along this route
+        d = (self.length + other_length) / 2.0 + self.params.emergency_gap_m
+        slow = ds_l < FOLLOW_REST_MPS * np.maximum(dt_l, 0.0)
+        rest: float | None = None
+        if k == pts.shape[0] and bool(slow[-1]):
+            # it rests at the start of its path's trailing slow run
+            moving = np.flatnonzero(~slow)
+            first = int(moving[-1]) + 1 if moving.size else 0
+            rest = float(s_l[first])
+            s_l, t_l, ds_l, dt_l = s_l[: first + 1], t_l[: first + 1], ds_l[:first], dt_l[:first]
+        cap = np.full_like(s, np.inf)
+        step = ds_l > 1e-6
+        if bool(np.any(step)):
+            v_l = np.minimum(ds_l[step] / np.maximum(dt_l[step], 1e-6), self.limits.v_max)
+            mid = (0.5 * (s_l[1:] + s_l[:-1]))[step]
+            # from one grid step short of where it is now: between two grid points the
+            # profile's speed is interpolated, and it must not outrun the leader's start
+            q = s + d
+            inside = (q >= s_l[0] - DS) & (q <= s_l[-1])
+            if bool(np.any(inside)):
+                cap[inside] = np.interp(q[inside], mid, v_l)
+        if rest is not None:
+            # a grid step short: the profile reaches a stop up to a step past its cap's
+            cap = np.minimum(cap, stop_cap(s, rest - d - DS, self.limits.decel_emergency))
+        return np.minimum(cap, self.limits.v_max)
 
     # ------------------------------------------------------------------ yield
     def _own_interval(

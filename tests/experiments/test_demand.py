@@ -130,3 +130,32 @@ def test_options_pick_the_grid() -> None:
         )
     )
     assert sumo_only.columns == () and sumo_only.base_seed == 3 and sumo_only.seeds == 1
+
+
+@pytest.mark.slow  # 140 s of the turning mix at 600 veh/h in-process (about 40 s)
+def test_opposing_left_turners_behind_leaders_do_not_lock_the_box() -> None:
+    # Issue 12: sw-2 and ne-2, opposing left turners each following a straight car, had
+    # autonomous paths that rested where each could stop behind its leader, so the RSU saw
+    # their turns only 1-2 m from the box; both stops ended in it, each in the other's
+    # exit, and they stood there from 118 s to the end (27 of 44 cars finished by 180 s).
+    # Followed by their leaders' future paths, their paths run through the box early.
+    from services.model.types import Policy, RunMode
+    from services.sim.harness import SimOptions, Simulation
+
+    base = load_scenario(resolve_scenario("four-way-flows"))
+    sc = demand_scenario(base, 600.0, "turning", 60.0, 140.0)
+    sim = Simulation(sc, SimOptions(mode=RunMode.RSU, policy=Policy.PAPER, seed=0, trace=True))
+    result = sim.run()
+    assert result.collisions == 0
+    # no car stands with its centre in the box (grown by half a car) for 20 s or more
+    reach = 3.5 + 2.25
+    since: dict[str, float] = {}
+    longest = 0.0
+    for t, vehicle, _s, x, y, speed, *_ in sim.trace_rows:
+        if speed <= 0.05 and abs(x) <= reach and abs(y) <= reach:
+            since.setdefault(vehicle, t)
+            longest = max(longest, t - since[vehicle])
+        else:
+            since.pop(vehicle, None)
+    assert longest < 20.0
+    assert result.summary is not None and result.summary.vehicles_finished >= 30

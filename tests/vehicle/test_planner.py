@@ -16,7 +16,7 @@ from hypothesis import strategies as st
 from protocol.messages import FuturePath, Header, Mode
 from services.model.kinematics import TruthState
 from services.model.scenario import Scenario, ScenarioFile, limits_from_params, load_scenario
-from services.vehicle.planner import DS, AutonomousPlanner, Coordination, Reason
+from services.vehicle.planner import DS, AutonomousPlanner, Coordination, Plan, Reason
 from tests.vehicle.conftest import PAPER
 
 CENTER_S = 200.0
@@ -408,3 +408,105 @@ def test_a_coordinated_path_that_ends_at_rest_is_a_stop_the_car_keeps(
     comfortable = v0 * v0 / (2.0 * lim.decel_comfort)
     if comfortable <= room:  # no harder than comfortable when that reaches it
         assert stop >= s0 + comfortable - DS
+
+
+# --------------------------------------------------------------------------- following
+# The autonomous path follows a car ahead by its future path (issue 12, the opposing-left-
+# turner lock): a follower's path no longer rests where it could stop behind its leader,
+# it runs on behind it through the intersection, as it will drive.
+
+
+def _leader_fp(
+    planner_: AutonomousPlanner, vid: str, s0: float, v0: float, accel: float, rest_s: float = 1e9
+) -> tuple[TruthState, FuturePath]:
+    """A car ``vid`` on ``planner_``'s route at ``s0`` [m], ``v0`` [m/s], and its future path
+    over 10 s: accelerating (or braking) at ``accel`` [m/s²] within [0, 13.89] m/s, stopping
+    at ``rest_s`` at the latest, sampled every 0.1 s."""
+    route = planner_.route
+    s, v, rows = s0, v0, []
+    for k in range(101):
+        x, y = route.point_at(min(s, route.length))
+        rows.append((x, y, 0.1 * k))
+        v = min(max(v + accel * 0.1, 0.0), 13.89)
+        s = min(s + v * 0.1, rest_s)
+    x, y = route.point_at(s0)
+    truth = TruthState(vid, 0.0, x, y, route.heading_at(s0), v0, 0.0, s0, 4.5, 1.8)
+    heading = route.heading_at(s0)
+    fp = FuturePath(Header(vid, 1, 0), x, y, v0, heading, 4.5, 1.8, Mode.AUTO, np.array(rows))
+    return truth, fp
+
+
+_AP = Coordination(lift_caution=True, skip_yield=True)
+
+
+def _ap(planner_: AutonomousPlanner, ego: TruthState, leader: TruthState, fp: FuturePath) -> Plan:
+    follow = Coordination(lift_caution=True, skip_yield=True, follow={leader.id: fp})
+    return planner_.plan(0.0, ego, [leader], {}, follow)
+
+
+def test_a_left_turner_s_autonomous_path_follows_its_leader_through_the_box() -> None:
+    turner = _route_planner("b-turner", "sw")
+    lead = _route_planner("a-lead", "sn")
+    zone = turner.crossings[0]
+    ego = _on(turner, zone.s_in - 20.0, 5.0)
+    leader, fp = _leader_fp(lead, "a-lead", ego.s + 8.0, 5.0, 1.5)
+    # braking for the leader as if it might stop hard now, the path rests short of the turn
+    plain = turner.plan(0.0, ego, [leader], {}, _AP).profile.stop_s()
+    assert plain is not None and plain < zone.s_out
+    # by its future path (straight on, away from the turn), it runs on through the box
+    followed = _ap(turner, ego, leader, fp).profile
+    stop = followed.stop_s()
+    assert stop is None or stop > zone.s_out + 10.0
+    assert math.isfinite(float(np.interp(zone.s_out, followed.s, followed.t)))
+
+
+def test_a_follower_stops_a_follow_distance_behind_where_its_leaders_path_rests() -> None:
+    car, lead = _route_planner("b", "sn"), _route_planner("a", "sn")
+    zone = car.crossings[0]
+    rest = zone.s_in + 2.0  # the leader will stand in the box, e.g. for a crossing car
+    ego = _on(car, zone.s_in - 20.0, 5.0)
+    leader, fp = _leader_fp(lead, "a", ego.s + 8.0, 5.0, 0.0, rest_s=rest)
+    stop = _ap(car, ego, leader, fp).profile.stop_s()
+    d = 4.5 + car.params.emergency_gap_m
+    assert stop is not None and rest - d - 1.0 <= stop <= rest - d
+
+
+def test_a_sensed_car_without_a_future_path_is_braked_for_as_before() -> None:
+    car, lead = _route_planner("b", "sn"), _route_planner("a", "sn")
+    zone = car.crossings[0]
+    ego = _on(car, zone.s_in - 20.0, 5.0)
+    leader, fp = _leader_fp(lead, "a", ego.s + 8.0, 5.0, 1.5)
+    other = FuturePath(fp.header, fp.x, fp.y, fp.speed, fp.heading, 4.5, 1.8, Mode.AUTO, fp.points)
+    plain = car.plan(0.0, ego, [leader], {}, _AP).profile
+    unknown = Coordination(lift_caution=True, skip_yield=True, follow={"someone-else": other})
+    assert np.array_equal(car.plan(0.0, ego, [leader], {}, unknown).profile.v, plain.v)
+
+
+@settings(max_examples=150, deadline=None)
+@given(
+    st.floats(0.0, 12.0),  # leader's speed [m/s]
+    st.floats(-3.0, 1.5),  # its acceleration [m/s²]
+    st.floats(0.0, 15.0),  # extra room beyond the follow distance [m]
+    st.floats(0.0, 1.0),  # follower's speed as a share of the leader's
+    st.floats(-40.0, 10.0),  # where the leader is, from the zone [m]
+)
+def test_the_followed_path_never_reaches_a_place_before_the_leader_is_a_follow_distance_on(
+    v_lead: float, accel: float, room: float, share: float, at: float
+) -> None:
+    # t_f(s) >= t_l(s + d): the follower is never within a follow distance behind where
+    # the leader's path puts it (so the RSU's follow rule never finds the two in conflict)
+    car, lead = _route_planner("b", "sn"), _route_planner("a", "sn")
+    d = 4.5 + car.params.emergency_gap_m
+    s_lead = car.crossings[0].s_in + at
+    ego = _on(car, s_lead - d - room, v_lead * share)
+    leader, fp = _leader_fp(lead, "a", s_lead, v_lead, accel)
+    profile = _ap(car, ego, leader, fp).profile
+    s_l, _ = car.route.project_many(fp.points[:, :2])
+    t_l = fp.points[:, 2]
+    moving = np.concatenate([[True], np.diff(s_l) > 1e-9])
+    s_l, t_l = s_l[moving], t_l[moving]
+    ahead = profile.s + d
+    inside = (ahead >= s_l[0]) & (ahead <= s_l[-1]) & np.isfinite(profile.t)
+    assume(bool(np.any(inside)))
+    t_leader = np.interp(ahead[inside], s_l, t_l)
+    assert bool(np.all(profile.t[inside] >= t_leader - 0.1))
