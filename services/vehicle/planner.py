@@ -526,8 +526,8 @@ class AutonomousPlanner:
         k = int(off[0]) if off.size else int(pts.shape[0])
         if k < 2:
             return None
-        s_l, t_l = cs[:k], pts[:k, 2]
-        ds_l, dt_l = np.diff(s_l), np.diff(t_l)
+        s_l = cs[:k]
+        ds_l, dt_l = np.diff(s_l), np.diff(pts[:k, 2])
         if bool(np.any(ds_l < -0.05)):
             return None  # not a path along this route
         d = (self.length + other_length) / 2.0 + self.params.emergency_gap_m
@@ -538,7 +538,7 @@ class AutonomousPlanner:
             moving = np.flatnonzero(~slow)
             first = int(moving[-1]) + 1 if moving.size else 0
             rest = float(s_l[first])
-            s_l, t_l, ds_l, dt_l = s_l[: first + 1], t_l[: first + 1], ds_l[:first], dt_l[:first]
+            s_l, ds_l, dt_l = s_l[: first + 1], ds_l[:first], dt_l[:first]
         cap = np.full_like(s, np.inf)
         step = ds_l > 1e-6
         if bool(np.any(step)):

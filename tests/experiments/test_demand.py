@@ -18,6 +18,8 @@ from services.experiments.demand import (
 )
 from services.model.catalog import resolve_scenario
 from services.model.scenario import load_scenario
+from services.model.types import Policy, RunMode
+from services.sim.harness import SimOptions, Simulation
 from tests.sumo.conftest import require_sumo
 
 
@@ -139,9 +141,6 @@ def test_opposing_left_turners_behind_leaders_do_not_lock_the_box() -> None:
     # their turns only 1-2 m from the box; both stops ended in it, each in the other's
     # exit, and they stood there from 118 s to the end (27 of 44 cars finished by 180 s).
     # Followed by their leaders' future paths, their paths run through the box early.
-    from services.model.types import Policy, RunMode
-    from services.sim.harness import SimOptions, Simulation
-
     base = load_scenario(resolve_scenario("four-way-flows"))
     sc = demand_scenario(base, 600.0, "turning", 60.0, 140.0)
     sim = Simulation(sc, SimOptions(mode=RunMode.RSU, policy=Policy.PAPER, seed=0, trace=True))
